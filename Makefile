@@ -1,0 +1,39 @@
+# fenics_elasto — every target bootstraps .venv (Python >= 3.12) on first use.
+SHELL := /bin/bash
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+
+# The first interpreter >= 3.12 that actually runs (pyenv shims may exist but refuse).
+PYTHON ?= $(shell for p in python3.13 python3.12 python3 $$(ls -d $$HOME/.pyenv/versions/3.1[2-9]*/bin/python3 /usr/bin/python3.1[2-9] 2>/dev/null); do \
+  $$p -c 'import sys; sys.exit(sys.version_info < (3, 12))' >/dev/null 2>&1 && echo $$p && break; done)
+
+.PHONY: demo demo-quick test test-fast bench lint clean
+
+$(STAMP): pyproject.toml
+	@test -n "$(PYTHON)" || { echo "error: no python >= 3.12 found on PATH" >&2; exit 2; }
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q -e '.[test]'
+	touch $(STAMP)
+
+demo: $(STAMP)
+	$(PY) demos/prostate_elastography.py --out out/demo
+
+demo-quick: $(STAMP)
+	$(PY) demos/prostate_elastography.py --quick --out out/demo-quick
+
+test: $(STAMP)
+	$(PY) -m pytest -q
+
+test-fast: $(STAMP)
+	$(PY) -m pytest -q -m "not slow"
+
+bench: $(STAMP)
+	$(PY) benchmarks/forward.py
+
+lint: $(STAMP)
+	$(PY) -m pyflakes fenics_elasto tests benchmarks demos 2>/dev/null || $(PY) -m compileall -q fenics_elasto tests benchmarks demos
+
+clean:
+	rm -rf $(VENV) out .pytest_cache

@@ -1,0 +1,92 @@
+"""Command line: parse, call the API, print, exit (0 ok, 2 bad input)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from mpi4py import MPI
+
+from fenics_elasto.errors import UserError
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="fenics-elasto", description=__doc__)
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("mesh", help="write a built-in scene (.msh + problem.toml)")
+    p.add_argument("name", help="letter-a, cantilever or prostate-phantom")
+    p.add_argument("--out", required=True, type=Path)
+    p.add_argument("--size", type=float, default=None, help="element size (scene units)")
+    p.add_argument("--seed", type=int, default=0, help="phantom patient variation (0 = nominal)")
+
+    for name, text in (("simulate", "forward solve with prescribed loads/displacements"),
+                       ("estimate", "estimate materials and boundary forces from a target")):
+        p = sub.add_parser(name, help=text)
+        p.add_argument("problem", type=Path)
+        p.add_argument("--out", required=True, type=Path)
+        p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a TOML value")
+
+    p = sub.add_parser("render", help="re-draw the picture of a result folder")
+    p.add_argument("result_dir", type=Path)
+    p.add_argument("--out", type=Path, default=None)
+    return parser
+
+
+def _mesh(args) -> None:
+    from fenics_elasto.meshing import build_scene
+
+    path = None
+    if MPI.COMM_WORLD.rank == 0:
+        path = build_scene(args.name, args.out, args.size, args.seed)
+    path = MPI.COMM_WORLD.bcast(path, root=0)
+    _say(f"wrote {path}")
+
+
+def _simulate(args) -> None:
+    from fenics_elasto.io import write_solution
+    from fenics_elasto.scene import load_scene
+    from fenics_elasto.simulate import simulate
+
+    scene = load_scene(args.problem, args.set)
+    sim = simulate(scene)
+    write_solution(args.out, scene, sim.u, sim.result, title=f"simulate: {args.problem.parent.name}")
+    _say(f"dofs {sim.result['dofs']}, max |u| {sim.result['max_displacement']:.4g}, "
+         f"{sim.result['wall_time_s']:.2f} s -> {args.out}")
+
+
+def _estimate(args) -> None:
+    from fenics_elasto.estimate import run_estimate
+
+    run_estimate(args.problem, args.out, args.set)
+
+
+def _render(args) -> None:
+    from fenics_elasto.render import render_folder
+
+    if MPI.COMM_WORLD.rank == 0:
+        _say(f"wrote {render_folder(args.result_dir, args.out)}")
+
+
+def _say(text: str) -> None:
+    if MPI.COMM_WORLD.rank == 0:
+        print(text, flush=True)
+
+
+COMMANDS = {"mesh": _mesh, "simulate": _simulate, "estimate": _estimate, "render": _render}
+
+
+def main(argv=None) -> int:
+    args = _parser().parse_args(argv)
+    try:
+        COMMANDS[args.command](args)
+    except UserError as err:
+        if MPI.COMM_WORLD.rank == 0:
+            print(f"error: {err}", file=sys.stderr, flush=True)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

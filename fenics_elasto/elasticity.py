@@ -1,0 +1,285 @@
+"""Forward model: linear elasticity with cached per-material matrices.
+
+    K(theta) = sum_m mu_m A_m + lambda_m B_m
+
+A_m and B_m are assembled once (with the full sparsity pattern, via a DG0 indicator of
+region m) and without boundary conditions; K for any material values and any set of
+clamped DOFs is a linear combination plus ``zeroRowsColumns``. Factorizations (MUMPS
+through PETSc) are cached per (materials, clamped set) and counted.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from dataclasses import dataclass
+
+import numpy as np
+import ufl
+from mpi4py import MPI
+from petsc4py import PETSc
+
+import dolfinx
+import dolfinx.fem.petsc
+from dolfinx import fem
+
+from fenics_elasto.scene import Scene
+
+
+# --------------------------------------------------------------------------- materials
+
+
+def lame(E, nu, plane: str = "strain"):
+    """(mu, lambda) from Young's modulus and Poisson's ratio; plane stress uses lambda*."""
+    E, nu = np.asarray(E, float), np.asarray(nu, float)
+    mu = E / (2 * (1 + nu))
+    lam = E * nu / (1 - nu**2) if plane == "stress" else E * nu / ((1 + nu) * (1 - 2 * nu))
+    return mu, lam
+
+
+def lame_jacobian(E, nu, plane: str = "strain"):
+    """Partial derivatives (dmu/dE, dmu/dnu, dlam/dE, dlam/dnu)."""
+    E, nu = np.asarray(E, float), np.asarray(nu, float)
+    dmu_dE = 1 / (2 * (1 + nu))
+    dmu_dnu = -E / (2 * (1 + nu) ** 2)
+    if plane == "stress":
+        dlam_dE = nu / (1 - nu**2)
+        dlam_dnu = E * (1 + nu**2) / (1 - nu**2) ** 2
+    else:
+        dlam_dE = nu / ((1 + nu) * (1 - 2 * nu))
+        dlam_dnu = E * (1 + 2 * nu**2) / ((1 + nu) * (1 - 2 * nu)) ** 2
+    return dmu_dE, dmu_dnu, dlam_dE, dlam_dnu
+
+
+def epsilon(u):
+    return ufl.sym(ufl.grad(u))
+
+
+# --------------------------------------------------------------------------- node sets
+
+
+@dataclass
+class NodeSet:
+    """Owned nodes (blocks of the vector space) of a boundary, numbered across ranks.
+
+    Rank r holds global positions offset .. offset + len(blocks); ``gather`` and
+    ``local`` move per-node arrays between that numbering and this rank's part.
+    """
+
+    blocks: np.ndarray  # local block indices, owned only
+    coords: np.ndarray  # (n, gdim) reference positions
+    offset: int
+    total: int
+    comm: MPI.Comm
+
+    def __len__(self) -> int:
+        return len(self.blocks)
+
+    def dofs(self, bs: int) -> np.ndarray:
+        """(n, bs) local unrolled DOF indices."""
+        return self.blocks[:, None] * bs + np.arange(bs)
+
+    def gather(self, values: np.ndarray) -> np.ndarray:
+        """Per-node rows of every rank, in global order, on every rank."""
+        parts = self.comm.allgather(np.ascontiguousarray(values))
+        return np.concatenate(parts)
+
+    def local(self, values: np.ndarray) -> np.ndarray:
+        return values[self.offset : self.offset + len(self.blocks)]
+
+
+# --------------------------------------------------------------------------- the model
+
+
+class ElasticModel:
+    """Function space, cached material matrices, K(theta), factorizations and solves."""
+
+    def __init__(self, scene: Scene, solver: str = "lu", cache_size: int = 2):
+        self.scene = scene
+        mesh = scene.mesh
+        self.comm = mesh.comm
+        self.gdim = mesh.geometry.dim
+        self.V = fem.functionspace(mesh, ("Lagrange", scene.degree, (self.gdim,)))
+        self.bs = self.V.dofmap.index_map_bs
+        self.n_owned_blocks = self.V.dofmap.index_map.size_local
+        self.dof_coords = self.V.tabulate_dof_coordinates()[:, : self.gdim]
+        self.solver = solver
+        self.factorizations = 0
+        self._cache: OrderedDict = OrderedDict()
+        self._cache_size = cache_size
+        self.A, self.B = self._assemble_material_matrices()
+
+    # --- sizes and DOF sets
+
+    @property
+    def num_dofs(self) -> int:
+        return self.V.dofmap.index_map.size_global * self.bs
+
+    def boundary_blocks(self, groups) -> np.ndarray:
+        """Owned local block indices of the nodes on the named facet groups (P2: midpoints too)."""
+        facets = self.scene.facets(groups)
+        fdim = self.scene.mesh.topology.dim - 1
+        blocks = fem.locate_dofs_topological(self.V, fdim, facets)
+        return np.sort(blocks[blocks < self.n_owned_blocks]).astype(np.int32)
+
+    def node_set(self, groups, exclude_groups=()) -> NodeSet:
+        blocks = self.boundary_blocks(groups)
+        if exclude_groups:
+            blocks = np.setdiff1d(blocks, self.boundary_blocks(exclude_groups)).astype(np.int32)
+        offset = self.comm.exscan(len(blocks)) or 0
+        total = self.comm.allreduce(len(blocks))
+        return NodeSet(blocks, self.dof_coords[blocks], offset, total, self.comm)
+
+    def clamped_dofs(self, groups) -> np.ndarray:
+        """Owned local unrolled DOFs of the nodes on the groups."""
+        return (self.boundary_blocks(groups)[:, None] * self.bs + np.arange(self.bs)).ravel()
+
+    # --- matrices
+
+    def _assemble_material_matrices(self):
+        mesh, V = self.scene.mesh, self.V
+        u, v = ufl.TrialFunction(V), ufl.TestFunction(V)
+        chi = fem.Function(fem.functionspace(mesh, ("DG", 0)))
+        shear = fem.form(2 * chi * ufl.inner(epsilon(u), epsilon(v)) * ufl.dx)
+        volumetric = fem.form(chi * ufl.div(u) * ufl.div(v) * ufl.dx)
+        cell_dofs = chi.function_space.dofmap.list[:, 0]
+        A, B = [], []
+        for material in self.scene.materials:
+            chi.x.array[:] = 0.0
+            chi.x.array[cell_dofs[self.scene.cell_tags.find(material.tag)]] = 1.0
+            chi.x.scatter_forward()
+            for form, out in ((shear, A), (volumetric, B)):
+                M = dolfinx.fem.petsc.assemble_matrix(form)
+                M.assemble()
+                out.append(M)
+        return A, B
+
+    def lame_parameters(self, E, nu):
+        return lame(E, nu, self.scene.plane)
+
+    def stiffness(self, E, nu) -> PETSc.Mat:
+        """Unconstrained K(theta) as a linear combination of the cached matrices."""
+        mu, lam = self.lame_parameters(E, nu)
+        K = self.A[0].duplicate(copy=False)
+        for m in range(len(self.A)):
+            K.axpy(mu[m], self.A[m], structure=PETSc.Mat.Structure.SAME_NONZERO_PATTERN)
+            K.axpy(lam[m], self.B[m], structure=PETSc.Mat.Structure.SAME_NONZERO_PATTERN)
+        return K
+
+    def apply_stiffness(self, E, nu, x: PETSc.Vec, out: PETSc.Vec) -> PETSc.Vec:
+        """out = K(theta) x (unconstrained) from the cached matrices, without forming K."""
+        mu, lam = self.lame_parameters(E, nu)
+        out.zeroEntries()
+        tmp = out.duplicate()
+        for m in range(len(self.A)):
+            self.A[m].mult(x, tmp)
+            out.axpy(mu[m], tmp)
+            self.B[m].mult(x, tmp)
+            out.axpy(lam[m], tmp)
+        tmp.destroy()
+        return out
+
+    def factorize(self, E, nu, clamped: np.ndarray) -> "Factorization":
+        """K(theta) with the clamped DOFs eliminated, factorized; cached and counted."""
+        key = (tuple(np.round(E, 14)), tuple(np.round(nu, 14)), clamped.tobytes())
+        if key in self._cache:
+            self._cache.move_to_end(key)
+            return self._cache[key]
+        K = self.stiffness(E, nu)
+        start = self.V.dofmap.index_map.local_range[0] * self.bs
+        K.zeroRowsColumns((clamped + start).astype(PETSc.IntType), diag=1.0)
+        factor = Factorization(K, clamped, self.solver)
+        self.factorizations += 1
+        self._cache[key] = factor
+        while len(self._cache) > self._cache_size:
+            self._cache.popitem(last=False)[1].destroy()
+        return factor
+
+    # --- vectors and solves
+
+    def function(self, name: str = "u") -> fem.Function:
+        u = fem.Function(self.V)
+        u.name = name
+        return u
+
+    def solve(self, E, nu, clamped: np.ndarray, rhs: PETSc.Vec | None = None, prescribed=None) -> fem.Function:
+        """u with K u = rhs on free DOFs and u = prescribed (or 0) on the clamped DOFs.
+
+        ``prescribed``: a Function holding the clamped values (others ignored).
+        """
+        factor = self.factorize(E, nu, clamped)
+        load = self.function("rhs")  # keep the Function alive: its petsc_vec borrows its memory
+        b = load.x.petsc_vec
+        if rhs is not None:
+            rhs.copy(b)
+        if prescribed is not None:
+            g = prescribed.x.petsc_vec.copy()
+            keep = np.zeros(len(g.array), bool)
+            keep[clamped] = True
+            g.array[~keep] = 0.0  # only the clamped values lift the load
+            lift = self.apply_stiffness(E, nu, g, g.duplicate())
+            b.axpy(-1.0, lift)
+            b.array[clamped] = g.array[clamped]
+        else:
+            b.array[clamped] = 0.0
+        u = self.function()
+        factor.solve(b, u.x.petsc_vec)
+        u.x.scatter_forward()
+        return u
+
+    def traction_vector(self, tractions: dict) -> PETSc.Vec:
+        """Load vector of uniform tractions {group: traction vector} on exterior facet groups."""
+        mesh = self.scene.mesh
+        fdim = mesh.topology.dim - 1
+        facets, values = [], []
+        for i, group in enumerate(tractions):
+            facets.append(self.scene.facet_groups[group])
+            values.append(np.full(len(facets[-1]), i + 1, np.int32))
+        facets, values = np.concatenate(facets), np.concatenate(values)
+        order = np.argsort(facets)
+        tags = dolfinx.mesh.meshtags(mesh, fdim, facets[order], values[order])
+        ds = ufl.Measure("ds", domain=mesh, subdomain_data=tags)
+        v = ufl.TestFunction(self.V)
+        terms = [ufl.inner(fem.Constant(mesh, np.asarray(t, float)), v) * ds(i + 1) for i, t in enumerate(tractions.values())]
+        b = dolfinx.fem.petsc.assemble_vector(fem.form(sum(terms)))
+        b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+        return b
+
+    def group_measure(self, group: str) -> float:
+        """Length (2D) or area (3D) of a facet group."""
+        mesh = self.scene.mesh
+        facets = self.scene.facet_groups[group]
+        tags = dolfinx.mesh.meshtags(mesh, mesh.topology.dim - 1, np.sort(facets), np.ones(len(facets), np.int32))
+        ds = ufl.Measure("ds", domain=mesh, subdomain_data=tags)
+        one = fem.Constant(mesh, 1.0)
+        return self.comm.allreduce(fem.assemble_scalar(fem.form(one * ds(1))), op=MPI.SUM)
+
+
+class Factorization:
+    """A factorized K with identity rows on its clamped DOFs (MUMPS via PETSc)."""
+
+    def __init__(self, K: PETSc.Mat, clamped: np.ndarray, kind: str = "lu"):
+        self.K = K
+        self.clamped = clamped
+        self.ksp = PETSc.KSP().create(K.getComm())
+        self.ksp.setOperators(K)
+        self.ksp.setType("preonly")
+        pc = self.ksp.getPC()
+        pc.setType("cholesky" if kind == "cholesky" else "lu")
+        pc.setFactorSolverType("mumps")
+        if kind == "cholesky":
+            K.setOption(PETSc.Mat.Option.SYMMETRIC, True)
+        self.ksp.setUp()
+        self.solves = 0
+
+    def solve(self, b: PETSc.Vec, x: PETSc.Vec) -> None:
+        self.ksp.solve(b, x)
+        self.solves += 1
+
+    def solve_many(self, B: PETSc.Mat, X: PETSc.Mat) -> None:
+        """Dense block of right-hand sides through the one factorization (MatMatSolve)."""
+        self.ksp.getPC().getFactorMatrix().matSolve(B, X)
+        self.solves += B.getSize()[1]
+
+    def destroy(self) -> None:
+        self.ksp.destroy()
+        self.K.destroy()

@@ -1,0 +1,260 @@
+"""Built-in scenes: gmsh meshes plus a ready ``problem.toml``.
+
+The 2D scenes are gmsh ``.geo`` sources in ``meshes/``; the prostate phantom is built
+with gmsh's OpenCASCADE kernel here because ``--seed`` varies its organs.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from fenics_elasto.errors import require
+
+GEO_DIR = Path(__file__).parent / "meshes"
+SCENES = ("letter-a", "cantilever", "prostate-phantom")
+
+
+class _Gmsh:
+    """A fresh gmsh model, closed again on exit."""
+
+    def __init__(self, name: str):
+        self.name = name
+
+    def __enter__(self):
+        import gmsh
+
+        if not gmsh.isInitialized():
+            gmsh.initialize(interruptible=False)
+        gmsh.option.setNumber("General.Terminal", 0)
+        gmsh.clear()
+        gmsh.model.add(self.name)
+        return gmsh
+
+    def __exit__(self, *exc):
+        import gmsh
+
+        gmsh.clear()
+
+
+def _write_msh(gmsh, path: Path, dim: int) -> None:
+    gmsh.model.mesh.generate(dim)
+    gmsh.option.setNumber("Mesh.MshFileVersion", 4.1)
+    gmsh.option.setNumber("Mesh.SaveAll", 0)
+    gmsh.write(str(path))
+
+
+def _mesh_geo(geo: str, path: Path, dim: int, numbers: dict) -> None:
+    with _Gmsh(path.stem) as gmsh:
+        for key, value in numbers.items():
+            gmsh.parser.setNumber(key, [float(value)])
+        gmsh.merge(str(GEO_DIR / geo))
+        _write_msh(gmsh, path, dim)
+
+
+LETTER_A_TOML = """\
+# The paper's 2D experiment: letter A, feet clamped, top loaded, outline matched.
+mesh = "letter_a.msh"
+plane = "strain"
+degree = 2            # P2 is accurate; degree = 1 is the paper's setting (locks as nu -> 0.5)
+
+[materials.letter]
+E  = 10.0             # with unknown forces only nu is identifiable for one material
+nu = {{ estimate = true, initial = 0.3, bounds = [0.0, 0.499] }}
+
+[boundary]
+fixed   = ["feet"]
+loaded  = ["top"]
+matched = ["outline"]
+
+# Used by `simulate` to make a synthetic target: the top is pushed down and sideways.
+[boundary.displacement.top]
+value = [0.4, -0.8]
+
+[target]
+surface = "target.vtp"   # e.g. the surface.vtp written by `simulate`
+"""
+
+CANTILEVER_TOML = """\
+# Plane-stress cantilever (Timoshenko-Goodier): support clamped, end shear at the tip.
+mesh = "cantilever.msh"
+plane = "stress"
+degree = 2
+
+[materials.beam]
+E  = 1000.0
+nu = 0.3
+
+[boundary]
+fixed   = ["support"]
+loaded  = ["tip"]
+matched = ["top", "bottom"]
+
+# Used by `simulate`: total force on the tip, spread as a uniform traction.
+[boundary.load]
+tip = [0.0, -1.0]
+"""
+
+PHANTOM_TOML = """\
+# Synthetic pelvis: soft tissue with a bladder cavity, a prostate and a rectum tube,
+# clamped at the bones. Units: cm and kPa.
+mesh = "phantom.msh"
+degree = 2
+
+[materials.prostate]
+E  = {{ estimate = true, initial = 30.0, bounds = [2.0, 300.0] }}
+nu = 0.4
+
+[materials.tissue]
+E  = 10.0             # the reference: with unknown forces only E ratios are identifiable
+nu = 0.4
+
+[boundary]
+fixed   = ["bones"]
+loaded  = ["bladder", "rectum"]
+matched = ["bladder", "prostate_surface", "rectum"]
+
+# Used by `simulate`: the bladder inflated by {inflation:.0%} about its centre.
+[boundary.displacement.bladder]
+scale  = {inflation}
+center = [{cx:.4f}, {cy:.4f}, {cz:.4f}]
+
+[target]
+surface = "target.vtp"
+"""
+
+
+def build_letter_a(out: Path, size: float | None = None) -> Path:
+    _mesh_geo("letter_a.geo", out / "letter_a.msh", 2, {"h": size or 0.4})
+    return _write_toml(out, LETTER_A_TOML.format())
+
+
+def build_cantilever(out: Path, size: float | None = None, length: float = 8.0, half_height: float = 1.0) -> Path:
+    _mesh_geo("cantilever.geo", out / "cantilever.msh", 2, {"h": size or 0.25, "L": length, "c": half_height})
+    return _write_toml(out, CANTILEVER_TOML)
+
+
+def phantom_organs(seed: int) -> dict:
+    """Organ sizes and positions (cm); seed 0 is the nominal patient, others vary it.
+
+    The jitter (radii +-8 %, centres +-0.15 cm) keeps every gap between organs open.
+    """
+    nominal = {
+        "bladder": {"center": [0.0, -0.3, 2.6], "radii": [2.3, 1.9, 1.5]},
+        "prostate": {"center": [0.0, 0.0, -0.8], "radii": [1.6, 1.3, 1.1]},
+        "rectum": {"center": [0.0, 2.9, -4.0], "radius": 0.9, "length": 5.0},
+        "pubis": {"center": [-3.5, -3.0, -1.0], "radius": 0.7, "length": 7.0},
+        "sacrum": {"center": [-3.0, 4.2, 2.5], "radius": 0.5, "length": 6.0},
+    }
+    if seed == 0:
+        return nominal
+    rng = np.random.default_rng(seed)
+    organs = {}
+    for name, organ in nominal.items():
+        organs[name] = dict(organ)
+        organs[name]["center"] = list(np.add(organ["center"], rng.uniform(-0.15, 0.15, 3)))
+        if "radii" in organ:
+            organs[name]["radii"] = list(np.multiply(organ["radii"], rng.uniform(0.92, 1.08, 3)))
+        else:
+            organs[name]["radius"] = organ["radius"] * rng.uniform(0.92, 1.08)
+    return organs
+
+
+def _inside(box, outer, tol=1e-6) -> bool:
+    return all(box[i] >= outer[i] - tol and box[i + 3] <= outer[i + 3] + tol for i in range(3))
+
+
+def build_prostate_phantom(out: Path, size: float | None = None, seed: int = 0) -> Path:
+    h = size or 1.0
+    organs = phantom_organs(seed)
+    half = (6.0, 5.0, 5.0)
+    with _Gmsh("phantom") as gmsh:
+        occ = gmsh.model.occ
+
+        def ellipsoid(organ):
+            tag = occ.addSphere(*organ["center"], 1.0)
+            occ.dilate([(3, tag)], *organ["center"], *organ["radii"])
+            return tag
+
+        body = occ.addBox(-half[0], -half[1], -half[2], 2 * half[0], 2 * half[1], 2 * half[2])
+        bladder = ellipsoid(organs["bladder"])
+        r = organs["rectum"]
+        rectum = occ.addCylinder(*r["center"], 0, 0, r["length"], r["radius"])
+        bones = [
+            occ.addCylinder(*organs[b]["center"], organs[b]["length"], 0, 0, organs[b]["radius"])
+            for b in ("pubis", "sacrum")
+        ]
+        boxes = {}
+        occ.synchronize()
+        for name, tag in (("bladder", bladder), ("rectum", rectum), ("pubis", bones[0]), ("sacrum", bones[1])):
+            boxes[name] = gmsh.model.getBoundingBox(3, tag)
+        tissue, _ = occ.cut([(3, body)], [(3, bladder), (3, rectum)] + [(3, b) for b in bones])
+        prostate = ellipsoid(organs["prostate"])
+        occ.fragment(tissue, [(3, prostate)])
+        occ.synchronize()
+
+        volumes = sorted((occ.getMass(3, t), t) for _, t in gmsh.model.getEntities(3))
+        prostate_vol, tissue_vol = volumes[0][1], volumes[-1][1]
+        prostate_faces = [t for _, t in gmsh.model.getBoundary([(3, prostate_vol)], oriented=False)]
+        outer = (-half[0], -half[1], -half[2], half[0], half[1], half[2])
+        faces = {"bladder": [], "rectum": [], "bones": [], "skin": []}
+        for _, face in gmsh.model.getBoundary([(3, tissue_vol)], oriented=False):
+            if face in prostate_faces:
+                continue
+            box = gmsh.model.getBoundingBox(2, face)
+            if _inside(box, boxes["bladder"]):
+                faces["bladder"].append(face)
+            elif _inside(box, boxes["rectum"]):
+                faces["rectum"].append(face)
+            elif _inside(box, boxes["pubis"]) or _inside(box, boxes["sacrum"]):
+                faces["bones"].append(face)
+            else:
+                require(not _inside(box, outer, -1e-3), f"prostate-phantom seed {seed}: unclassified surface {face}")
+                faces["skin"].append(face)
+
+        gmsh.model.addPhysicalGroup(3, [tissue_vol], name="tissue")
+        gmsh.model.addPhysicalGroup(3, [prostate_vol], name="prostate")
+        for name, tags in faces.items():
+            gmsh.model.addPhysicalGroup(2, tags, name=name)
+        gmsh.model.addPhysicalGroup(2, prostate_faces, name="prostate_surface")
+
+        # Finer near the organs, coarser towards the skin.
+        organ_faces = faces["bladder"] + faces["rectum"] + prostate_faces
+        field = gmsh.model.mesh.field
+        dist = field.add("Distance")
+        field.setNumbers(dist, "SurfacesList", organ_faces)
+        thr = field.add("Threshold")
+        field.setNumber(thr, "InField", dist)
+        field.setNumber(thr, "SizeMin", 0.5 * h)
+        field.setNumber(thr, "SizeMax", 1.6 * h)
+        field.setNumber(thr, "DistMin", 0.3)
+        field.setNumber(thr, "DistMax", 4.0)
+        field.setAsBackgroundMesh(thr)
+        gmsh.option.setNumber("Mesh.MeshSizeExtendFromBoundary", 0)
+        gmsh.option.setNumber("Mesh.MeshSizeFromPoints", 0)
+        gmsh.option.setNumber("Mesh.MeshSizeFromCurvature", 0)
+        gmsh.option.setNumber("Mesh.RandomSeed", 1)
+        _write_msh(gmsh, out / "phantom.msh", 3)
+
+    c = organs["bladder"]["center"]
+    return _write_toml(out, PHANTOM_TOML.format(inflation=0.1, cx=c[0], cy=c[1], cz=c[2]))
+
+
+def _write_toml(out: Path, text: str) -> Path:
+    path = out / "problem.toml"
+    path.write_text(text)
+    return path
+
+
+def build_scene(name: str, out, size: float | None = None, seed: int = 0) -> Path:
+    """Write the named built-in scene's mesh and ``problem.toml`` into ``out``."""
+    require(name in SCENES, f"unknown scene {name!r}; choose one of {', '.join(SCENES)}")
+    require(size is None or size > 0, f"--size must be > 0, got {size}")
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    if name == "letter-a":
+        return build_letter_a(out, size)
+    if name == "cantilever":
+        return build_cantilever(out, size)
+    return build_prostate_phantom(out, size, seed)

@@ -1,0 +1,91 @@
+"""Headless pictures with pyvista: deformed over undeformed, coloured by |u|."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+GROUP_COLOURS = ["#e6550d", "#3182bd", "#31a354", "#756bb1", "#d6616b", "#8c6d31"]
+
+
+def _plotter():
+    import os
+
+    # Straight to the off-screen (EGL/OSMesa) window: no failed X connection first.
+    os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
+    import pyvista as pv
+
+    pv.OFF_SCREEN = True
+    return pv.Plotter(off_screen=True, window_size=(1400, 1000))
+
+
+def render(
+    path: Path,
+    groups: dict,  # name -> deformed surface (pyvista, with "|u|")
+    reference: dict | None = None,  # name -> undeformed surface
+    context=None,  # e.g. the whole body (2D: deformed cells; 3D: exterior surface)
+    target=None,
+    title: str = "",
+    dim: int = 3,
+) -> Path:
+    """Write a PNG: each group deformed and coloured by |u| over its undeformed outline."""
+    plotter = _plotter()
+    bar = {"title": "|u|", "vertical": True, "position_x": 0.88, "position_y": 0.2}
+    clim = _shared_range([context] if dim == 2 and context is not None else list(groups.values()))
+    if context is not None:
+        if dim == 2:
+            plotter.add_mesh(context, scalars="|u|", cmap="viridis", clim=clim, show_edges=True,
+                             edge_color="#555555", line_width=0.5, scalar_bar_args=bar)
+        else:
+            plotter.add_mesh(context, color="#d9d9d9", opacity=0.12, show_scalar_bar=False)
+    for i, (name, mesh) in enumerate(groups.items()):
+        if dim == 2:
+            plotter.add_mesh(mesh, color=GROUP_COLOURS[i % len(GROUP_COLOURS)], line_width=3, label=name)
+        else:
+            plotter.add_mesh(mesh, scalars="|u|", cmap="viridis", clim=clim, show_edges=True,
+                             edge_color=GROUP_COLOURS[i % len(GROUP_COLOURS)], line_width=0.6,
+                             scalar_bar_args=bar if i == 0 else None, show_scalar_bar=i == 0, label=name)
+    for mesh in (reference or {}).values():
+        plotter.add_mesh(mesh, color="black", style="wireframe", opacity=0.35, line_width=1)
+    if target is not None:
+        plotter.add_mesh(target, color="red", style="wireframe" if dim == 3 else "surface",
+                         opacity=0.5, line_width=2, label="target")
+    legend = [[name, GROUP_COLOURS[i % len(GROUP_COLOURS)]] for i, name in enumerate(groups)]
+    legend += [["target", "red"]] if target is not None else []
+    if legend:
+        plotter.add_legend(legend, bcolor="white", face="rectangle", size=(0.2, 0.2), loc="upper left")
+    if title:
+        plotter.add_text(title, font_size=12, position="upper_edge")
+    if dim == 2:
+        plotter.view_xy()
+    else:
+        plotter.view_vector((1.0, -1.6, 0.7), viewup=(0.0, 0.0, 1.0))
+    plotter.reset_camera()
+    plotter.screenshot(str(path))
+    plotter.close()
+    return path
+
+
+def _shared_range(meshes) -> tuple[float, float]:
+    values = [m.point_data["|u|"] for m in meshes if m is not None and m.n_points]
+    top = max((float(np.max(v)) for v in values), default=1.0)
+    return (0.0, top if top > 0 else 1.0)
+
+
+def render_folder(folder: Path, out: Path | None = None) -> Path:
+    """Re-draw a result folder from its saved surfaces (``surface_<group>.vtp``, ``target.vtp``)."""
+    import pyvista as pv
+
+    from fenics_elasto.errors import require
+
+    folder = Path(folder)
+    files = sorted(folder.glob("surface_*.vtp"))
+    require(bool(files), f"{folder}: no surface_*.vtp files (is it a result folder?)")
+    groups = {f.stem.removeprefix("surface_"): pv.read(f) for f in files}
+    dim = 2 if all(np.allclose(m.points[:, 2], 0) for m in groups.values()) else 3
+    target = pv.read(folder / "target.vtp") if (folder / "target.vtp").is_file() else None
+    for mesh in groups.values():
+        if "|u|" not in mesh.point_data:
+            mesh.point_data["|u|"] = np.zeros(mesh.n_points)
+    return render(Path(out or folder / "screenshot.png"), groups, target=target, title=folder.name, dim=dim)
