@@ -240,7 +240,11 @@ class ElasticModel:
         ds = ufl.Measure("ds", domain=mesh, subdomain_data=tags)
         v = ufl.TestFunction(self.V)
         terms = [ufl.inner(fem.Constant(mesh, np.asarray(t, float)), v) * ds(i + 1) for i, t in enumerate(tractions.values())]
-        b = dolfinx.fem.petsc.assemble_vector(fem.form(sum(terms)))
+        return self.assemble_load(sum(terms))
+
+    def assemble_load(self, linear_form) -> PETSc.Vec:
+        """Load vector of a UFL linear form in V (ghost contributions summed)."""
+        b = dolfinx.fem.petsc.assemble_vector(fem.form(linear_form))
         b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
         return b
 

@@ -39,6 +39,7 @@ class _Gmsh:
 
 
 def _write_msh(gmsh, path: Path, dim: int) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
     gmsh.model.mesh.generate(dim)
     gmsh.option.setNumber("Mesh.MshFileVersion", 4.1)
     gmsh.option.setNumber("Mesh.SaveAll", 0)
@@ -252,7 +253,6 @@ def build_scene(name: str, out, size: float | None = None, seed: int = 0) -> Pat
     require(name in SCENES, f"unknown scene {name!r}; choose one of {', '.join(SCENES)}")
     require(size is None or size > 0, f"--size must be > 0, got {size}")
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     if name == "letter-a":
         return build_letter_a(out, size)
     if name == "cantilever":

@@ -260,13 +260,20 @@ def _parse_vector(spec, gdim: int, where: str) -> np.ndarray:
 
 
 def _parse_displacement(spec, gdim: int, where: str) -> dict:
-    """A prescribed displacement u(x) = value + scale * (x - center)."""
-    require(isinstance(spec, dict), f"{where}: expected a table with value / scale / center")
-    unknown = set(spec) - {"value", "scale", "center"}
+    """A prescribed affine displacement u(x) = value + G (x - center).
+
+    G is ``gradient`` (a gdim x gdim matrix) plus ``scale`` times the identity
+    (``scale`` alone inflates about ``center``).
+    """
+    require(isinstance(spec, dict), f"{where}: expected a table with value / scale / gradient / center")
+    unknown = set(spec) - {"value", "scale", "gradient", "center"}
     require(not unknown, f"{where}: unknown key(s) {sorted(unknown)}")
+    gradient = spec.get("gradient", [[0.0] * gdim] * gdim)
+    require(isinstance(gradient, list) and len(gradient) == gdim, f"{where}.gradient: expected {gdim} rows")
+    gradient = np.array([_parse_vector(row, gdim, f"{where}.gradient") for row in gradient])
     return {
         "value": _parse_vector(spec.get("value", [0.0] * gdim), gdim, f"{where}.value"),
-        "scale": _number(spec.get("scale", 0.0), f"{where}.scale"),
+        "gradient": gradient + _number(spec.get("scale", 0.0), f"{where}.scale") * np.eye(gdim),
         "center": _parse_vector(spec.get("center", [0.0] * gdim), gdim, f"{where}.center"),
     }
 

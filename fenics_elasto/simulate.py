@@ -33,12 +33,12 @@ def material_values(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
 
 
 def prescribed_function(model: ElasticModel, displacement: dict) -> fem.Function:
-    """u(x) = value + scale * (x - center) on the nodes of each prescribed group."""
+    """u(x) = value + G (x - center) on the nodes of each prescribed group."""
     g = model.function("prescribed")
     values = g.x.array.reshape(-1, model.bs)
     for group, spec in displacement.items():
         blocks = model.boundary_blocks([group])
-        values[blocks] = spec["value"] + spec["scale"] * (model.dof_coords[blocks] - spec["center"])
+        values[blocks] = spec["value"] + (model.dof_coords[blocks] - spec["center"]) @ spec["gradient"].T
     return g
 
 

@@ -1,0 +1,40 @@
+"""Shared fixtures. Meshes are built once per session into a temporary folder; the
+FFCx JIT cache (~/.cache/fenics) stays warm across tests and runs."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+import fenics_elasto  # noqa: F401  (imports dolfinx_solver first)
+from fenics_elasto.meshing import build_scene
+
+ROOT = Path(__file__).resolve().parents[1]
+BIN = Path(sys.executable).parent
+
+
+@pytest.fixture(scope="session")
+def scenes(tmp_path_factory):
+    """Built-in scenes at test sizes: name -> problem.toml path."""
+    base = tmp_path_factory.mktemp("scenes")
+    return {
+        "letter-a": build_scene("letter-a", base / "letter-a"),
+        "cantilever": build_scene("cantilever", base / "cantilever"),
+        "prostate-phantom": build_scene("prostate-phantom", base / "phantom", size=1.6),
+    }
+
+
+def run_cli(*args, mpi: int = 0, timeout: int = 600) -> subprocess.CompletedProcess:
+    """Run the console script (optionally under mpiexec) and capture its output."""
+    cmd = [str(BIN / "fenics-elasto"), *map(str, args)]
+    if mpi:
+        cmd = [str(BIN / "mpiexec"), "-n", str(mpi), *cmd]
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
+
+
+def run_mpi_script(script: Path, ranks: int, *args, timeout: int = 600) -> subprocess.CompletedProcess:
+    cmd = [str(BIN / "mpiexec"), "-n", str(ranks), sys.executable, str(script), *map(str, args)]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return proc
