@@ -38,3 +38,15 @@ def run_mpi_script(script: Path, ranks: int, *args, timeout: int = 600) -> subpr
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
     assert proc.returncode == 0, proc.stderr[-3000:]
     return proc
+
+
+def assert_picture(path: Path, min_coverage: float = 0.005) -> None:
+    """A real picture: a PNG of which some part is drawn, in several colours."""
+    import numpy as np
+    from PIL import Image
+
+    image = np.asarray(Image.open(path).convert("RGB")).astype(int)
+    background = image[0, 0]
+    drawn = np.abs(image - background).sum(axis=2) > 30
+    assert drawn.mean() > min_coverage, f"{path}: only {drawn.mean():.2%} drawn"
+    assert len(np.unique(image.reshape(-1, 3), axis=0)) > 20, f"{path}: too few colours"

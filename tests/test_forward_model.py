@@ -1,0 +1,94 @@
+"""Forward model properties: linear combination, scaling, factorization reuse, MPI."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import ufl
+
+import dolfinx.fem.petsc
+from dolfinx import fem
+
+from conftest import run_mpi_script
+from fenics_elasto.elasticity import ElasticModel, lame, lame_jacobian
+from fenics_elasto.scene import load_scene
+from fenics_elasto.simulate import material_values, simulate
+
+
+@pytest.fixture(scope="module")
+def phantom(scenes):
+    scene = load_scene(scenes["prostate-phantom"], ["degree=1"])
+    return scene, ElasticModel(scene)
+
+
+def test_linear_combination_equals_direct_assembly(phantom):
+    scene, model = phantom
+    E, nu = np.array([10.0, 37.0]), np.array([0.45, 0.3])
+    mu, lam = lame(E, nu)
+    Q = fem.functionspace(scene.mesh, ("DG", 0))
+    mu_f, lam_f = fem.Function(Q), fem.Function(Q)
+    for m, material in enumerate(scene.materials):
+        cells = scene.cell_tags.find(material.tag)
+        mu_f.x.array[Q.dofmap.list[cells, 0]] = mu[m]
+        lam_f.x.array[Q.dofmap.list[cells, 0]] = lam[m]
+    u, v = ufl.TrialFunction(model.V), ufl.TestFunction(model.V)
+    eps = lambda w: ufl.sym(ufl.grad(w))  # noqa: E731
+    direct = dolfinx.fem.petsc.assemble_matrix(
+        fem.form(2 * mu_f * ufl.inner(eps(u), eps(v)) * ufl.dx + lam_f * ufl.div(u) * ufl.div(v) * ufl.dx))
+    direct.assemble()
+    combined = model.stiffness(E, nu)
+    combined.axpy(-1.0, direct)
+    assert combined.norm() / direct.norm() < 1e-12
+
+
+def test_lame_jacobian_matches_finite_differences():
+    E, nu, h = 7.0, 0.37, 1e-6
+    for plane in ("strain", "stress"):
+        numeric = [(np.array(lame(E + h, nu, plane)) - lame(E - h, nu, plane)) / (2 * h),
+                   (np.array(lame(E, nu + h, plane)) - lame(E, nu - h, plane)) / (2 * h)]
+        dmu_dE, dmu_dnu, dlam_dE, dlam_dnu = lame_jacobian(E, nu, plane)
+        assert np.allclose([dmu_dE, dlam_dE], numeric[0], rtol=1e-8)
+        assert np.allclose([dmu_dnu, dlam_dnu], numeric[1], rtol=1e-8)
+
+
+def test_scaling_stiffness_and_forces_leaves_u_unchanged(scenes):
+    scene = load_scene(scenes["cantilever"])
+    base = simulate(scene).u.x.array.copy()
+    scaled = load_scene(scenes["cantilever"], ["materials.beam.E=7000.0", "boundary.load.tip=[0.0, -7.0]"])
+    u = simulate(scaled).u.x.array
+    assert np.abs(u - base).max() < 1e-10 * np.abs(base).max()
+    assert np.abs(base).max() > 0.01  # the load really deforms the beam
+
+
+def test_factorization_is_cached_and_counted(phantom):
+    scene, model = phantom
+    E, nu = material_values(scene)
+    clamped = model.clamped_dofs(scene.fixed)
+    before = model.factorizations
+    rhs = model.function("f")
+    rhs.x.array[:] = 1.0
+    u1 = model.solve(E, nu, clamped, rhs.x.petsc_vec).x.array.copy()
+    u2 = model.solve(E, nu, clamped, rhs.x.petsc_vec).x.array.copy()
+    assert model.factorizations == before + 1
+    assert np.array_equal(u1, u2)
+    model.solve(E * 2, nu, clamped, rhs.x.petsc_vec)
+    assert model.factorizations == before + 2
+
+
+def _sorted_by_position(data):
+    order = np.lexsort(np.round(data["coords"], 9).T[::-1])
+    return data["coords"][order], data["disp"][order]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["letter-a", "prostate-phantom"])
+def test_two_ranks_give_the_serial_displacement(scenes, tmp_path, name):
+    script = Path(__file__).parent / "mpi" / "forward.py"
+    results = {}
+    for ranks in (1, 2):
+        run_mpi_script(script, ranks, scenes[name], tmp_path / f"u{ranks}.npz")
+        results[ranks] = _sorted_by_position(np.load(tmp_path / f"u{ranks}.npz"))
+    (x1, u1), (x2, u2) = results[1], results[2]
+    assert np.allclose(x1, x2, atol=1e-12)
+    assert np.abs(u1 - u2).max() < 1e-8 * max(1.0, np.abs(u1).max())
+    assert np.abs(u1).max() > 1e-3
