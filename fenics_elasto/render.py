@@ -89,3 +89,51 @@ def render_folder(folder: Path, out: Path | None = None) -> Path:
         if "|u|" not in mesh.point_data:
             mesh.point_data["|u|"] = np.zeros(mesh.n_points)
     return render(Path(out or folder / "screenshot.png"), groups, target=target, title=folder.name, dim=dim)
+
+
+def target_polydata(problem):
+    """The target as a pyvista mesh (surfaces padded to 3D; landmarks as points)."""
+    import pyvista as pv
+
+    target = problem.target
+    if target.landmark_nodes is not None:
+        pts = np.zeros((len(target.landmark_points), 3))
+        pts[:, : problem.gdim] = target.landmark_points
+        return pv.PolyData(pts)
+    meshes = []
+    for surface in target.surfaces:
+        pts = np.zeros((len(surface.points), 3))
+        pts[:, : surface.dim] = surface.points
+        conn = np.hstack([np.full((len(surface.cells), 1), surface.cells.shape[1]), surface.cells]).ravel()
+        meshes.append(pv.PolyData(pts, lines=conn) if surface.cells.shape[1] == 2 else pv.PolyData(pts, faces=conn))
+    return pv.merge(meshes) if len(meshes) > 1 else meshes[0]
+
+
+def plot_convergence(result: dict, path: Path) -> Path:
+    """Phi* and each estimated constant per evaluation (scan, then outer iterations)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    history = result["history"]
+    names = result["estimated"]
+    fig, axes = plt.subplots(1, 1 + len(names), figsize=(5 * (1 + len(names)), 4))
+    steps = np.arange(len(history))
+    outer = np.array([h["stage"] == "outer" for h in history])
+    phi = np.array([h["phi"] for h in history])
+    axes[0].semilogy(steps[~outer], phi[~outer], "o", color="grey", label="initial scan")
+    axes[0].semilogy(steps[outer], phi[outer], "o-", color="C0", label="outer iterations")
+    axes[0].set(xlabel="evaluation of Phi*", ylabel="Phi*", title="objective")
+    axes[0].legend()
+    for k, name in enumerate(names):
+        values = np.array([h["theta"][k] for h in history])
+        axes[k + 1].plot(steps[~outer], values[~outer], "o", color="grey")
+        axes[k + 1].plot(steps[outer], values[outer], "o-", color="C1")
+        material, key = name.split(".")
+        axes[k + 1].axhline(result["materials"][material][key], color="k", lw=0.8, ls="--")
+        axes[k + 1].set(xlabel="evaluation of Phi*", ylabel=name, title=name)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

@@ -1,0 +1,264 @@
+"""Nested optimisation (method.md §4): materials outside, boundary forces inside.
+
+Phi*(theta) = min_F Phi(theta, F) is evaluated by an inner L-BFGS over the forces
+at fixed theta (one factorization of K(theta), two back-solves per iteration,
+warm-started). By the envelope theorem dPhi*/dtheta is the partial derivative at the
+inner optimum, so the outer loop is a bounded L-BFGS-B over the estimated constants
+(log E, nu). Start: forces from iterative surface matching, materials from a scan.
+"""
+
+from __future__ import annotations
+
+import itertools
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy.optimize import minimize
+
+from fenics_elasto.errors import require
+from fenics_elasto.matching import match_surface
+from fenics_elasto.objective import Evaluation, InverseProblem
+
+
+# lbfgs: L-BFGS over the forces in boundary-displacement coordinates (default);
+# lbfgs-forces: L-BFGS over the raw nodal forces, as in the paper.
+INNER_SOLVERS = ("lbfgs", "lbfgs-forces")
+
+
+@dataclass
+class Options:
+    inner: str = "lbfgs"
+    inner_maxiter: int = 400
+    outer_maxiter: int = 40
+    scan: int = 5  # material values per estimated constant in the initial scan
+    inner_tol: float = 1e-11  # relative decrease of Phi that ends the inner loop
+
+    @classmethod
+    def from_scene(cls, scene) -> "Options":
+        table = dict(scene.config.get("optimizer", {}))
+        known = set(cls.__dataclass_fields__)
+        unknown = set(table) - known
+        require(not unknown, f"{scene.path}: [optimizer]: unknown key(s) {sorted(unknown)} (have {sorted(known)})")
+        inner = table.get("inner", "lbfgs")
+        require(inner in INNER_SOLVERS, f"{scene.path}: optimizer.inner: {inner!r} is not one of {INNER_SOLVERS}")
+        return cls(**table)
+
+
+@dataclass
+class Progress:
+    """Evaluations of Phi* so far, and the best one (what an interrupt returns)."""
+
+    history: list = field(default_factory=list)
+    best: tuple | None = None  # (phi, theta, controls)
+
+    def record(self, theta, controls, phi, inner_iterations, stage):
+        self.history.append({"stage": stage, "theta": list(map(float, theta)), "phi": phi, "inner": inner_iterations})
+        if self.best is None or phi < self.best[0]:
+            self.best = (phi, np.array(theta), controls.copy())
+
+
+class NestedEstimator:
+    def __init__(self, problem: InverseProblem, options: Options | None = None, say=print):
+        self.problem = problem
+        self.options = options or Options()
+        self.say = say if problem.scene.comm.rank == 0 else (lambda *_: None)
+        self.log_scale = np.array([key == "E" for _, key in problem.estimated])
+        self.progress = Progress()
+        self.inner_iterations = 0
+        self.outer_iterations = 0
+        # Controls: the paper's nodal forces, or (default) the loaded-boundary displacement
+        # they produce -- the same Phi*, preconditioned by the Dirichlet-to-Neumann map.
+        self.coordinates = "forces" if self.options.inner == "lbfgs-forces" else "displacement"
+        self.evaluate = problem.evaluate_forces if self.coordinates == "forces" else problem.evaluate_displacement
+        self.control_scale = 1.0
+        self.phi_scale = 1.0
+
+    # --- variables: log E and nu
+
+    def to_s(self, theta):
+        return np.where(self.log_scale, np.log(np.where(self.log_scale, theta, 1.0)), theta)
+
+    def to_theta(self, s):
+        return np.where(self.log_scale, np.exp(s), s)
+
+    # --- initial controls from surface matching
+
+    def matched_boundary_displacement(self) -> np.ndarray:
+        """Surface-match the matched nodes to the target; the loaded nodes' share, flat.
+
+        Loaded nodes that are not matched start at zero displacement.
+        """
+        p = self.problem
+        u_match = match_surface(p.matched_coords, p.matched_groups(), p.target)
+        matched = p.load(u_match, p.matched)  # a Function with the matched rows
+        return p.on_loaded(matched)
+
+    def initial_controls(self, theta, d0) -> np.ndarray:
+        if self.coordinates == "displacement":
+            return d0
+        u = self.problem.evaluate_displacement(theta, d0).u
+        return self.problem.reaction_forces(theta, u)
+
+    # --- inner problem: forces at fixed materials
+
+    def solve_inner(self, theta, controls0) -> tuple[np.ndarray, Evaluation, int]:
+        evaluate = self.evaluate
+        cache = {}
+
+        def fun(z):
+            ev = evaluate(theta, z * self.control_scale, "both")
+            cache.clear()
+            cache[z.tobytes()] = ev
+            return ev.phi / self.phi_scale, ev.grad_controls * (self.control_scale / self.phi_scale)
+
+        res = minimize(fun, controls0 / self.control_scale, jac=True, method="L-BFGS-B",
+                       options={"maxiter": self.options.inner_maxiter, "maxcor": 30,
+                                "ftol": self.options.inner_tol, "gtol": 1e-12})
+        ev = cache.get(res.x.tobytes()) or evaluate(theta, res.x * self.control_scale, "both")
+        self.inner_iterations += res.nit
+        return res.x * self.control_scale, ev, res.nit
+
+    def phi_star(self, theta, controls0, stage: str):
+        controls, ev, nit = self.solve_inner(theta, controls0)
+        self.progress.record(theta, controls, ev.phi, nit, stage)
+        self.say(f"  {stage:5s} {self._describe(theta)}  Phi* = {ev.phi:.6e}  ({nit} inner iterations)")
+        return controls, ev
+
+    def _describe(self, theta) -> str:
+        return "  ".join(f"{m}.{k} = {v:.5g}" for (m, k), v in zip(self.problem.estimated, theta))
+
+    # --- the whole estimate
+
+    def scan_points(self) -> list[np.ndarray]:
+        axes = []
+        for (lo, hi), log in zip(self.problem.bounds(), self.log_scale):
+            n = self.options.scan if len(self.log_scale) == 1 else max(2, min(self.options.scan, 3))
+            q = (np.arange(n) + 0.5) / n
+            axes.append(np.exp(np.log(lo) + q * (np.log(hi) - np.log(lo))) if log else lo + q * (hi - lo))
+        return [np.array(point) for point in itertools.product(*axes)]
+
+    def run(self):
+        p = self.problem
+        theta0 = p.initial_theta()
+        d0 = self.matched_boundary_displacement()
+        controls0 = self.initial_controls(theta0, d0)
+        self.control_scale = max(float(np.sqrt(np.mean(controls0**2))), 1e-300)
+        self.phi_scale = max(self.evaluate(theta0, controls0).phi, 1e-300)
+        candidates = [theta0] + self.scan_points()
+        self.say(f"scan of {len(candidates)} material values (start: surface matching)")
+        for theta in candidates:
+            self.phi_star(theta, controls0 if theta is theta0 else self.initial_controls(theta, d0), "scan")
+        _, theta_best, controls_best = self.progress.best
+        warm = {"controls": controls_best}
+
+        def objective(s):
+            theta = self.to_theta(s)
+            controls, ev = self.phi_star(theta, warm["controls"], "outer")
+            warm["controls"] = controls
+            grad_s = ev.grad_theta * np.where(self.log_scale, theta, 1.0)
+            return ev.phi / self.phi_scale, grad_s / self.phi_scale
+
+        def count(_):
+            self.outer_iterations += 1
+
+        self.say("outer L-BFGS-B over the materials (envelope gradient)")
+        bounds = [tuple(self.to_s(np.array(b))) for b in p.bounds()]
+        minimize(objective, self.to_s(theta_best), jac=True, method="L-BFGS-B", bounds=bounds, callback=count,
+                 options={"maxiter": self.options.outer_maxiter, "ftol": 1e-10, "gtol": 1e-7})
+
+    def final(self):
+        """(theta, forces, evaluation) of the best point seen."""
+        _, theta, controls = self.progress.best
+        ev = self.evaluate(theta, controls)
+        forces = controls if self.coordinates == "forces" else self.problem.reaction_forces(theta, ev.u)
+        return theta, forces, ev
+
+
+def check_overlap(problem: InverseProblem) -> float:
+    """Refuse a target that does not lie on the matched surface; return Phi at u = 0."""
+    scene = problem.scene
+    x = problem.matched_coords
+    residual = problem.target.residual(x)
+    size = float(np.linalg.norm(x.max(axis=0) - x.min(axis=0)))
+    distance = float(np.sqrt(np.mean(np.sum(residual**2, axis=1))))
+    require(distance < 0.25 * size,
+            f"{scene.path}: the target does not overlap the matched surface "
+            f"(rms distance {distance:.3g} vs matched size {size:.3g}); is it in the same units and frame?")
+    return 0.5 * float(np.sum(residual**2))
+
+
+def estimate(problem: InverseProblem, options: Options | None = None, say=print):
+    """Run the nested optimisation -> (result dict, displacement, forces).
+
+    On Ctrl-C it stops and returns the best result so far (``interrupted``: true).
+    """
+    start = time.perf_counter()
+    scene = problem.scene
+    require(problem.estimated, f"{scene.path}: nothing to estimate: mark at least one E or nu with estimate = true")
+    fixed_E = [m.name for m in scene.materials if not m.E.estimate]
+    require(fixed_E, f"{scene.path}: every E is estimated, but with unknown boundary forces only ratios of E "
+                     "are identifiable (scaling K and F together leaves u unchanged): fix one region's E as the reference")
+    phi_undeformed = check_overlap(problem)
+    estimator = NestedEstimator(problem, options or Options.from_scene(scene), say)
+    interrupted = False
+    try:
+        estimator.run()
+    except KeyboardInterrupt:
+        interrupted = True
+        estimator.say("interrupted: writing the best result so far")
+        require(estimator.progress.best is not None, "interrupted before the first evaluation: nothing to write")
+    theta, forces, final = estimator.final()
+    E, nu = problem.materials(theta)
+    comm = scene.comm
+    result = {
+        "materials": {m.name: {"E": float(E[i]), "nu": float(nu[i])} for i, m in enumerate(scene.materials)},
+        "estimated": [f"{m}.{k}" for m, k in problem.estimated],
+        "objective": {"undeformed": phi_undeformed, "initial": estimator.progress.history[0]["phi"], "final": final.phi},
+        "surface_distance": problem.surface_distance(final.residual),
+        "iterations": {"outer": estimator.outer_iterations, "inner": estimator.inner_iterations,
+                       "evaluations": len(estimator.progress.history)},
+        "factorizations": problem.model.factorizations,
+        "solves": {"forward": problem.forward_solves, "adjoint": problem.adjoint_solves},
+        "dofs": problem.model.num_dofs,
+        "force_dofs": problem.force_dofs,
+        "rank": None,
+        "degree": scene.degree,
+        "mpi_ranks": comm.size,
+        "interrupted": interrupted,
+        "wall_time_s": round(time.perf_counter() - start, 3),
+        "history": estimator.progress.history,
+    }
+    return result, final.u, forces
+
+
+def run_estimate(problem_path: Path, out: Path, overrides=()) -> dict:
+    """The ``estimate`` command: load, estimate, write result.json, pictures and fields."""
+    from fenics_elasto.io import write_solution
+    from fenics_elasto.render import plot_convergence, target_polydata
+    from fenics_elasto.scene import load_scene
+
+    scene = load_scene(problem_path, overrides)
+    problem = InverseProblem(scene)
+    say = (lambda text: print(text, flush=True)) if scene.comm.rank == 0 else (lambda *_: None)
+    say(f"estimate {', '.join(f'{m}.{k}' for m, k in problem.estimated)}: {problem.model.num_dofs} dofs, "
+        f"{problem.force_dofs} force dofs, {problem.matched.total} matched nodes")
+    result, u, _ = estimate(problem, say=say)
+    target = target_polydata(problem) if scene.comm.rank == 0 else None
+    out = Path(out)
+    write_solution(out, scene, u, result, target=target, title=_title(result))
+    if scene.comm.rank == 0:
+        target.save(out / "target.vtp")
+        plot_convergence(result, out / "convergence.png")
+    say(f"{_title(result)}; rms distance {result['surface_distance']['rms']:.3g}, "
+        f"{result['factorizations']} factorizations, {result['wall_time_s']:.1f} s -> {out}")
+    return result
+
+
+def _title(result: dict) -> str:
+    parts = []
+    for name in result["estimated"]:
+        material, key = name.split(".")
+        parts.append(f"{name} = {result['materials'][material][key]:.4g}")
+    return "estimate: " + ", ".join(parts)
