@@ -114,15 +114,25 @@ class ElasticModel:
     def num_dofs(self) -> int:
         return self.V.dofmap.index_map.size_global * self.bs
 
-    def boundary_blocks(self, groups) -> np.ndarray:
-        """Owned local block indices of the nodes on the named facet groups (P2: midpoints too)."""
+    def boundary_blocks(self, groups, vertices_only: bool = False) -> np.ndarray:
+        """Owned local block indices of the nodes on the named facet groups.
+
+        For P2 these include the edge midpoints, unless ``vertices_only``.
+        """
         facets = self.scene.facets(groups)
-        fdim = self.scene.mesh.topology.dim - 1
-        blocks = fem.locate_dofs_topological(self.V, fdim, facets)
+        mesh = self.scene.mesh
+        fdim = mesh.topology.dim - 1
+        if vertices_only:
+            mesh.topology.create_connectivity(fdim, 0)
+            mesh.topology.create_connectivity(0, mesh.topology.dim)
+            vertices = np.unique(mesh.topology.connectivity(fdim, 0).array.reshape(-1, fdim + 1)[facets])
+            blocks = fem.locate_dofs_topological(self.V, 0, vertices.astype(np.int32))
+        else:
+            blocks = fem.locate_dofs_topological(self.V, fdim, facets)
         return np.sort(blocks[blocks < self.n_owned_blocks]).astype(np.int32)
 
-    def node_set(self, groups, exclude_groups=()) -> NodeSet:
-        blocks = self.boundary_blocks(groups)
+    def node_set(self, groups, exclude_groups=(), vertices_only: bool = False) -> NodeSet:
+        blocks = self.boundary_blocks(groups, vertices_only)
         if exclude_groups:
             blocks = np.setdiff1d(blocks, self.boundary_blocks(exclude_groups)).astype(np.int32)
         offset = self.comm.exscan(len(blocks)) or 0
@@ -225,6 +235,15 @@ class ElasticModel:
         factor.solve(b, u.x.petsc_vec)
         u.x.scatter_forward()
         return u
+
+    def dense(self, columns: int) -> PETSc.Mat:
+        """A dense matrix with V's row layout (owned DOFs) and ``columns`` columns, zeroed."""
+        n_local = self.n_owned_blocks * self.bs
+        M = PETSc.Mat().createDense(((n_local, PETSc.DETERMINE), (PETSc.DECIDE, columns)), comm=self.comm)
+        M.setUp()
+        M.zeroEntries()
+        M.assemble()
+        return M
 
     def traction_vector(self, tractions: dict) -> PETSc.Vec:
         """Load vector of uniform tractions {group: traction vector} on exterior facet groups."""

@@ -1,10 +1,19 @@
 """Nested optimisation (method.md §4): materials outside, boundary forces inside.
 
-Phi*(theta) = min_F Phi(theta, F) is evaluated by an inner L-BFGS over the forces
-at fixed theta (one factorization of K(theta), two back-solves per iteration,
-warm-started). By the envelope theorem dPhi*/dtheta is the partial derivative at the
-inner optimum, so the outer loop is a bounded L-BFGS-B over the estimated constants
-(log E, nu). Start: forces from iterative surface matching, materials from a scan.
+Phi*(theta) = min_F Phi(theta, F) is evaluated by an inner optimisation over the
+loaded-boundary forces at fixed theta, re-using one factorization. By the envelope
+theorem dPhi*/dtheta is the partial derivative at the inner optimum (one adjoint
+solve), so the outer loop is a bounded L-BFGS-B over the estimated constants (log E,
+nu). Start: forces from iterative surface matching, materials from a scan.
+
+Inner solvers (``[optimizer] inner``):
+- ``gauss-newton`` (default while the loaded boundary has at most ``full_gn_limit``
+  DOFs, and always with reduced bases): the matched displacement is linear in the
+  boundary modes, J q, with J from one block solve; Levenberg-Marquardt on the
+  point-to-plane residuals then needs no FE solve per iteration.
+- ``lbfgs``: L-BFGS over the forces in boundary-displacement coordinates (the forces
+  preconditioned by the Dirichlet-to-Neumann map), two back-solves per iteration.
+- ``lbfgs-forces``: L-BFGS over the raw nodal forces, as in the paper.
 """
 
 from __future__ import annotations
@@ -21,19 +30,17 @@ from fenics_elasto.errors import require
 from fenics_elasto.matching import match_surface
 from fenics_elasto.objective import Evaluation, InverseProblem
 
-
-# lbfgs: L-BFGS over the forces in boundary-displacement coordinates (default);
-# lbfgs-forces: L-BFGS over the raw nodal forces, as in the paper.
-INNER_SOLVERS = ("lbfgs", "lbfgs-forces")
+INNER_SOLVERS = ("auto", "gauss-newton", "lbfgs", "lbfgs-forces")
 
 
 @dataclass
 class Options:
-    inner: str = "lbfgs"
+    inner: str = "auto"
     inner_maxiter: int = 400
     outer_maxiter: int = 40
     scan: int = 5  # material values per estimated constant in the initial scan
-    inner_tol: float = 1e-11  # relative decrease of Phi that ends the inner loop
+    inner_tol: float = 1e-6  # relative decrease of Phi that ends the inner loop
+    full_gn_limit: int = 4000  # largest full force space for which "auto" picks Gauss-Newton
 
     @classmethod
     def from_scene(cls, scene) -> "Options":
@@ -41,7 +48,7 @@ class Options:
         known = set(cls.__dataclass_fields__)
         unknown = set(table) - known
         require(not unknown, f"{scene.path}: [optimizer]: unknown key(s) {sorted(unknown)} (have {sorted(known)})")
-        inner = table.get("inner", "lbfgs")
+        inner = table.get("inner", "auto")
         require(inner in INNER_SOLVERS, f"{scene.path}: optimizer.inner: {inner!r} is not one of {INNER_SOLVERS}")
         return cls(**table)
 
@@ -60,18 +67,26 @@ class Progress:
 
 
 class NestedEstimator:
-    def __init__(self, problem: InverseProblem, options: Options | None = None, say=print):
+    """The nested optimisation of one InverseProblem, optionally in a reduced basis W."""
+
+    def __init__(self, problem: InverseProblem, options: Options | None = None, say=print, basis=None):
         self.problem = problem
         self.options = options or Options()
+        self.basis = basis  # W (force_dofs x r) or None: the full space
         self.say = say if problem.scene.comm.rank == 0 else (lambda *_: None)
         self.log_scale = np.array([key == "E" for _, key in problem.estimated])
         self.progress = Progress()
         self.inner_iterations = 0
         self.outer_iterations = 0
-        # Controls: the paper's nodal forces, or (default) the loaded-boundary displacement
-        # they produce -- the same Phi*, preconditioned by the Dirichlet-to-Neumann map.
-        self.coordinates = "forces" if self.options.inner == "lbfgs-forces" else "displacement"
-        self.evaluate = problem.evaluate_forces if self.coordinates == "forces" else problem.evaluate_displacement
+        inner = self.options.inner
+        if inner == "auto":
+            small = problem.force_dofs <= self.options.full_gn_limit
+            inner = "gauss-newton" if basis is not None or small else "lbfgs"
+        require(basis is None or inner == "gauss-newton", "reduced bases need optimizer.inner = 'gauss-newton'")
+        self.inner = inner
+        # Controls: q (boundary displacement d = W q) for gauss-newton; d for lbfgs;
+        # the nodal forces F for lbfgs-forces.
+        self.evaluate = problem.evaluate_forces if inner == "lbfgs-forces" else problem.evaluate_displacement
         self.control_scale = 1.0
         self.phi_scale = 1.0
 
@@ -83,6 +98,10 @@ class NestedEstimator:
     def to_theta(self, s):
         return np.where(self.log_scale, np.exp(s), s)
 
+    def boundary(self, q):
+        """The loaded-boundary displacement of reduced coordinates q."""
+        return q if self.basis is None else self.basis @ q
+
     # --- initial controls from surface matching
 
     def matched_boundary_displacement(self) -> np.ndarray:
@@ -92,23 +111,31 @@ class NestedEstimator:
         """
         p = self.problem
         u_match = match_surface(p.matched_coords, p.matched_groups(), p.target)
-        matched = p.load(u_match, p.matched)  # a Function with the matched rows
-        return p.on_loaded(matched)
+        return p.on_loaded(p.load(u_match, p.matched))
 
     def initial_controls(self, theta, d0) -> np.ndarray:
-        if self.coordinates == "displacement":
-            return d0
-        u = self.problem.evaluate_displacement(theta, d0).u
-        return self.problem.reaction_forces(theta, u)
+        if self.inner == "lbfgs-forces":
+            return self.problem.reaction_forces(theta, self.problem.evaluate_displacement(theta, d0).u)
+        if self.basis is not None:
+            return self.basis.T @ d0
+        return d0
 
-    # --- inner problem: forces at fixed materials
+    # --- inner problems: forces at fixed materials
 
     def solve_inner(self, theta, controls0) -> tuple[np.ndarray, Evaluation, int]:
-        evaluate = self.evaluate
+        if self.inner == "gauss-newton":
+            controls, nit = self._gauss_newton(theta, controls0)
+            ev = self.problem.evaluate_displacement(theta, self.boundary(controls), "both")
+        else:
+            controls, ev, nit = self._lbfgs(theta, controls0)
+        self.inner_iterations += nit
+        return controls, ev, nit
+
+    def _lbfgs(self, theta, controls0):
         cache = {}
 
         def fun(z):
-            ev = evaluate(theta, z * self.control_scale, "both")
+            ev = self.evaluate(theta, z * self.control_scale, "both")
             cache.clear()
             cache[z.tobytes()] = ev
             return ev.phi / self.phi_scale, ev.grad_controls * (self.control_scale / self.phi_scale)
@@ -116,9 +143,42 @@ class NestedEstimator:
         res = minimize(fun, controls0 / self.control_scale, jac=True, method="L-BFGS-B",
                        options={"maxiter": self.options.inner_maxiter, "maxcor": 30,
                                 "ftol": self.options.inner_tol, "gtol": 1e-12})
-        ev = cache.get(res.x.tobytes()) or evaluate(theta, res.x * self.control_scale, "both")
-        self.inner_iterations += res.nit
+        ev = cache.get(res.x.tobytes()) or self.evaluate(theta, res.x * self.control_scale, "both")
         return res.x * self.control_scale, ev, res.nit
+
+    def _gauss_newton(self, theta, q):
+        """Levenberg-Marquardt on the point-to-plane residuals; x(q) = x0 + J q exactly."""
+        p = self.problem
+        J = p.response(theta, self.basis)
+        n, gdim, r = J.shape
+        flat = J.reshape(n * gdim, r)
+
+        def misfit(q):
+            x = p.matched_coords + (flat @ q).reshape(n, gdim)
+            res = p.target.residual(x)
+            return x, res, 0.5 * float(np.sum(res**2))
+
+        x, res, phi = misfit(q)
+        damping, nit = 1e-3, 0
+        for nit in range(1, self.options.inner_maxiter + 1):
+            A = np.einsum("lkd,ldr->lkr", p.target.curvature_directions(x), J).reshape(-1, r)
+            H = A.T @ A
+            grad = flat.T @ res.ravel()
+            scale = np.diag(H) + 1e-9 * np.max(np.diag(H), initial=1e-300)
+            while True:  # Levenberg-Marquardt: damp until the true misfit decreases
+                step = np.linalg.solve(H + damping * np.diag(scale), -grad)
+                x_new, res_new, phi_new = misfit(q + step)
+                if phi_new < phi or damping > 1e10:
+                    break
+                damping *= 10.0
+            if phi_new >= phi:
+                break
+            decrease = phi - phi_new
+            q, x, res, phi = q + step, x_new, res_new, phi_new
+            damping = max(damping / 10.0, 1e-12)
+            if decrease <= self.options.inner_tol * phi:
+                break
+        return q, nit
 
     def phi_star(self, theta, controls0, stage: str):
         controls, ev, nit = self.solve_inner(theta, controls0)
@@ -145,9 +205,10 @@ class NestedEstimator:
         d0 = self.matched_boundary_displacement()
         controls0 = self.initial_controls(theta0, d0)
         self.control_scale = max(float(np.sqrt(np.mean(controls0**2))), 1e-300)
-        self.phi_scale = max(self.evaluate(theta0, controls0).phi, 1e-300)
+        self.phi_scale = max(self.evaluate(theta0, self.boundary(controls0) if self.inner == "gauss-newton"
+                                           else controls0).phi, 1e-300)
         candidates = [theta0] + self.scan_points()
-        self.say(f"scan of {len(candidates)} material values (start: surface matching)")
+        self.say(f"scan of {len(candidates)} material values (start: surface matching; inner: {self.inner})")
         for theta in candidates:
             self.phi_star(theta, controls0 if theta is theta0 else self.initial_controls(theta, d0), "scan")
         _, theta_best, controls_best = self.progress.best
@@ -171,9 +232,10 @@ class NestedEstimator:
     def final(self):
         """(theta, forces, evaluation) of the best point seen."""
         _, theta, controls = self.progress.best
-        ev = self.evaluate(theta, controls)
-        forces = controls if self.coordinates == "forces" else self.problem.reaction_forces(theta, ev.u)
-        return theta, forces, ev
+        if self.inner == "lbfgs-forces":
+            return theta, controls, self.problem.evaluate_forces(theta, controls)
+        ev = self.problem.evaluate_displacement(theta, self.boundary(controls))
+        return theta, self.problem.reaction_forces(theta, ev.u), ev
 
 
 def check_overlap(problem: InverseProblem) -> float:

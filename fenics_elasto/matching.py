@@ -25,7 +25,7 @@ def neighbours(points: np.ndarray, groups: np.ndarray, k: int = 6) -> np.ndarray
 
 
 def match_surface(points, groups, target, iterations: int = 60, k_data: float = 0.5,
-                  k_spring: float = 0.5, k_spring_final: float = 0.02) -> np.ndarray:
+                  k_spring: float = 0.9, k_spring_final: float = 0.3) -> np.ndarray:
     """Displacements that bring ``points`` onto ``target`` (a surface.Target)."""
     nbrs = neighbours(points, groups)
     u = np.zeros_like(points)

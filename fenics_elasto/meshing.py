@@ -13,7 +13,7 @@ import numpy as np
 from fenics_elasto.errors import require
 
 GEO_DIR = Path(__file__).parent / "meshes"
-SCENES = ("letter-a", "cantilever", "prostate-phantom")
+SCENES = ("letter-a", "cantilever", "inclusion", "prostate-phantom")
 
 
 class _Gmsh:
@@ -97,6 +97,34 @@ matched = ["top", "bottom"]
 tip = [0.0, -1.0]
 """
 
+INCLUSION_TOML = """\
+# A stiff inclusion in a softer plate: recover the E ratio from the outline and the
+# inclusion interface. Bottom clamped, top loaded (unknown forces).
+mesh = "inclusion.msh"
+plane = "strain"
+degree = 2
+
+[materials.inclusion]
+E  = {{ estimate = true, initial = 30.0, bounds = [1.0, 1000.0] }}
+nu = 0.3
+
+[materials.matrix]
+E  = 10.0             # the reference
+nu = 0.3
+
+[boundary]
+fixed   = ["bottom"]
+loaded  = ["top"]
+matched = ["outline", "interface"]
+
+# Used by `simulate`: the top pressed down and sheared.
+[boundary.displacement.top]
+value = [0.5, -0.8]
+
+[target]
+surfaces = {{ outline = "target_outline.vtp", interface = "target_interface.vtp" }}
+"""
+
 PHANTOM_TOML = """\
 # Synthetic pelvis: soft tissue with a bladder cavity, a prostate and a rectum tube,
 # clamped at the bones. Units: cm and kPa.
@@ -134,6 +162,11 @@ def build_letter_a(out: Path, size: float | None = None) -> Path:
 def build_cantilever(out: Path, size: float | None = None, length: float = 8.0, half_height: float = 1.0) -> Path:
     _mesh_geo("cantilever.geo", out / "cantilever.msh", 2, {"h": size or 0.25, "L": length, "c": half_height})
     return _write_toml(out, CANTILEVER_TOML)
+
+
+def build_inclusion(out: Path, size: float | None = None, radius: float = 2.0) -> Path:
+    _mesh_geo("inclusion.geo", out / "inclusion.msh", 2, {"h": size or 0.5, "r": radius})
+    return _write_toml(out, INCLUSION_TOML.format())
 
 
 def phantom_organs(seed: int) -> dict:
@@ -257,4 +290,6 @@ def build_scene(name: str, out, size: float | None = None, seed: int = 0) -> Pat
         return build_letter_a(out, size)
     if name == "cantilever":
         return build_cantilever(out, size)
+    if name == "inclusion":
+        return build_inclusion(out, size)
     return build_prostate_phantom(out, size, seed)

@@ -42,7 +42,7 @@ class InverseProblem:
         self.clamped = self.model.clamped_dofs(scene.fixed)
         self.clamped_boundary = self.model.clamped_dofs(scene.fixed + scene.loaded)
         self.loaded = self.model.node_set(scene.loaded, exclude_groups=scene.fixed)
-        self.matched = self.model.node_set(scene.matched)
+        self.matched = self.model.node_set(scene.matched, vertices_only=scene.match_vertices_only)
         self.matched_coords = self.matched.gather(self.matched.coords)
         self.target = target or load_target(scene, self.matched_coords, self.matched_groups())
         self.forward_solves = 0
@@ -56,7 +56,7 @@ class InverseProblem:
         """Index into scene.matched of each matched node's (first) group, global order."""
         group = np.full(len(self.matched), -1)
         for i, name in reversed(list(enumerate(self.scene.matched))):
-            group[np.isin(self.matched.blocks, self.model.boundary_blocks([name]))] = i
+            group[np.isin(self.matched.blocks, self.model.boundary_blocks([name], self.scene.match_vertices_only))] = i
         return self.matched.gather(group)
 
     # --- parameters
@@ -140,6 +140,38 @@ class InverseProblem:
             ev.grad_controls = self.on_loaded(r) - self.on_loaded(Kw)
             ev.grad_theta = self.material_gradient(E, nu, ev.u, w)
         return ev
+
+    def response(self, theta, basis: np.ndarray | None = None) -> np.ndarray:
+        """J (n_matched, gdim, r): matched-node displacement per unit of each boundary mode.
+
+        The loaded boundary moves by d = W q (W: force_dofs x r, orthonormal columns;
+        None means the identity, the full space) and the interior follows from K_D u = 0,
+        so the matched displacement is exactly J q. The r right-hand sides
+        [-K W on free rows, W on the loaded rows] go through the one factorization of
+        K_D as a dense block (MatMatSolve).
+        """
+        model = self.model
+        E, nu = self.materials(theta)
+        factor = model.factorize(E, nu, self.clamped_boundary)
+        W = np.eye(self.force_dofs) if basis is None else basis
+        r = W.shape[1]
+        rows = self.loaded.dofs(model.bs).ravel()
+        W_local = self.loaded.local(W.reshape(self.loaded.total, self.gdim * r)).reshape(-1, r)
+        G = model.dense(r)
+        G.getDenseArray()[rows] = W_local
+        K = model.stiffness(E, nu)
+        rhs = K.matMult(G)
+        block = rhs.getDenseArray()
+        block *= -1.0
+        block[self.clamped] = 0.0
+        block[rows] = W_local
+        X = model.dense(r)
+        factor.solve_many(rhs, X)
+        matched_rows = self.matched.dofs(model.bs).ravel()
+        J = X.getDenseArray()[matched_rows].reshape(len(self.matched), self.gdim, r)
+        for M in (G, K, rhs, X):
+            M.destroy()
+        return self.matched.gather(J)
 
     def reaction_forces(self, theta, u) -> np.ndarray:
         """F = P^T K(theta) u: the loaded-node forces that produce u."""

@@ -55,6 +55,7 @@ class Scene:
     matched: list[str] = field(default_factory=list)
     displacement: dict[str, dict] = field(default_factory=dict)  # prescribed, per group
     load: dict[str, np.ndarray] = field(default_factory=dict)  # total force, per group
+    match_vertices_only: bool = False
 
     @property
     def gdim(self) -> int:
@@ -329,4 +330,5 @@ def load_scene(problem, overrides=(), comm=MPI.COMM_WORLD) -> Scene:
     return Scene(
         path=path, mesh=mesh, cell_tags=cell_tags, materials=materials, facet_groups=facet_groups,
         config=config, plane=plane, degree=degree, displacement=displacement, load=load, **groups,
+        match_vertices_only=boundary.get("match_nodes", "all") == "vertices",
     )

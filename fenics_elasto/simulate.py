@@ -64,3 +64,42 @@ def simulate(scene: Scene, model: ElasticModel | None = None) -> Simulation:
         "wall_time_s": round(time.perf_counter() - start, 3),
     }
     return Simulation(model, u, result)
+
+
+def probe(u: fem.Function, points: np.ndarray) -> np.ndarray:
+    """u at arbitrary points (every rank gets all values).
+
+    A point a hair outside the mesh (a coarse mesh's boundary node against a finer
+    mesh's facets) takes the value of the closest cell's polynomial.
+    """
+    import dolfinx.geometry as geo
+
+    mesh = u.function_space.mesh
+    tdim, gdim = mesh.topology.dim, mesh.geometry.dim
+    pts = np.zeros((len(points), 3))
+    pts[:, :gdim] = points
+    n_local = mesh.topology.index_map(tdim).size_local
+    owned = np.arange(n_local, dtype=np.int32)
+    tree = geo.bb_tree(mesh, tdim, entities=owned)
+    midpoints = geo.create_midpoint_tree(mesh, tdim, owned)
+    cells = geo.compute_closest_entity(tree, midpoints, mesh, pts)
+    found = cells >= 0
+    distance = np.full(len(pts), np.inf)
+    if found.any():
+        distance[found] = np.sqrt(geo.squared_distance(mesh, tdim, cells[found], pts[found]))
+    values = np.zeros((len(pts), gdim))
+    if found.any():
+        values[found] = u.eval(pts[found], cells[found])
+    # Each point from the rank whose cell is closest.
+    best = mesh.comm.allreduce(distance, op=MPI.MIN)
+    mine = found & (distance == best)
+    claim = mesh.comm.allreduce(np.where(mine, mesh.comm.rank, mesh.comm.size), op=MPI.MIN)
+    values[claim != mesh.comm.rank] = 0.0
+    return mesh.comm.allreduce(values, op=MPI.SUM)
+
+
+def write_landmarks(path, points: np.ndarray, displaced: np.ndarray) -> None:
+    """CSV of ``source point, target point`` rows (the [target] landmarks format)."""
+    dim = points.shape[1]
+    header = ",".join([f"x{i}" for i in range(dim)] + [f"X{i}" for i in range(dim)])
+    np.savetxt(path, np.c_[points, displaced], delimiter=",", header=header, comments="")

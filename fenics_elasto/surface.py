@@ -21,6 +21,16 @@ from scipy.spatial import cKDTree
 from fenics_elasto.errors import UserError, require
 
 
+def _barycentric(p, corners):
+    """Barycentric coordinates of points p in their simplex (segments or triangles)."""
+    a = corners[:, 0]
+    edges = corners[:, 1:] - a[:, None]  # (n, k-1, dim)
+    gram = np.einsum("nid,njd->nij", edges, edges)
+    rhs = np.einsum("nid,nd->ni", edges, p - a)
+    lam = np.linalg.solve(gram + 1e-300 * np.eye(gram.shape[1]), rhs[..., None])[..., 0]
+    return np.c_[1.0 - lam.sum(axis=1), lam]
+
+
 class Surface:
     """Triangles (3D) or segments (2D) with exact closest-point queries."""
 
@@ -29,11 +39,55 @@ class Surface:
         self.cells = np.ascontiguousarray(cells, dtype=np.int64)
         self.dim = self.points.shape[1]
 
+        corners = self.points[self.cells]
+        if self.dim == 2:
+            t = corners[:, 1] - corners[:, 0]
+            normals = np.c_[t[:, 1], -t[:, 0]]
+        else:
+            normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+        length = np.linalg.norm(normals, axis=1, keepdims=True)
+        self.normals = normals / np.where(length > 0, length, 1.0)
+
     def closest(self, x: np.ndarray) -> np.ndarray:
+        return self._query(x)[1]
+
+    def _query(self, x):
         x = np.ascontiguousarray(x, dtype=np.float64)
         if len(x) == 0:
-            return x.copy()
-        return igl.point_mesh_squared_distance(x, self.points, self.cells)[2]
+            return np.zeros(0, np.int64), x.copy()
+        _, simplex, cp = igl.point_mesh_squared_distance(x, self.points, self.cells)
+        return simplex, cp
+
+    def curvature_directions(self, x: np.ndarray) -> np.ndarray:
+        """(n, dim, dim) rows spanning the Hessian of 1/2 d(x, S)^2 (zero rows pad).
+
+        Closest point inside a face: the normal (the distance to a plane); on an edge:
+        the two directions across the edge; at a vertex: every direction. These are
+        exact for a piecewise-linear S away from its medial axis, which makes the
+        Gauss-Newton model of the misfit a Newton model.
+        """
+        simplex, cp = self._query(x)
+        corners = self.points[self.cells[simplex]]  # (n, k, dim)
+        k = corners.shape[1]
+        # Which corners carry weight: the feature the closest point lies on.
+        weights = _barycentric(cp, corners)
+        active = weights > 1e-9
+        count = active.sum(axis=1)
+        out = np.zeros((len(x), self.dim, self.dim))
+        vertex = count <= 1
+        out[vertex] = np.eye(self.dim)
+        interior = count == k
+        out[interior, 0] = self.normals[simplex[interior]]
+        edge = ~vertex & ~interior  # only in 3D (k = 3, two active corners)
+        if edge.any():
+            ends = np.argsort(~active[edge], axis=1, kind="stable")[:, :2]
+            rows = np.flatnonzero(edge)
+            t = corners[rows, ends[:, 1]] - corners[rows, ends[:, 0]]
+            t /= np.linalg.norm(t, axis=1, keepdims=True)
+            basis = np.eye(self.dim)[None] - t[:, :, None] * t[:, None, :]
+            q, _ = np.linalg.qr(basis)
+            out[rows, :2] = np.swapaxes(q[:, :, :2], 1, 2)
+        return out
 
 
 # --------------------------------------------------------------------------- targets
@@ -125,6 +179,17 @@ class Target:
 
     def residual(self, x: np.ndarray) -> np.ndarray:
         return x - self.closest(x)
+
+    def curvature_directions(self, x: np.ndarray) -> np.ndarray:
+        """(n, dim, dim): rows spanning each node's Gauss-Newton curvature of 1/2 |r|^2."""
+        out = np.zeros(x.shape + (x.shape[1],))
+        if self.landmark_nodes is not None:
+            out[self.landmark_nodes] = np.eye(x.shape[1])
+            return out
+        for i, surface in enumerate(self.surfaces):
+            rows = np.flatnonzero(self.surface_of == i)
+            out[rows] = surface.curvature_directions(x[rows])
+        return out
 
 
 def load_target(scene, matched_coords: np.ndarray, matched_group: np.ndarray) -> Target:
