@@ -23,7 +23,7 @@ def vertex_blocks(V: fem.FunctionSpace) -> np.ndarray:
     local order as the (affine) geometry's nodes.
     """
     mesh = V.mesh
-    geom = mesh.geometry.dofmap
+    geom = mesh.geometry.dofmaps[0]
     nverts = geom.shape[1]
     out = np.full(mesh.geometry.x.shape[0], -1, np.int64)
     out[geom.ravel()] = V.dofmap.list[:, :nverts].ravel()
@@ -99,6 +99,23 @@ def _json_default(value):
     raise TypeError(type(value))
 
 
+def write_matched_surfaces(out: Path, scene, u: fem.Function) -> None:
+    """``surface_<group>.vtp`` per matched group and ``surface.vtp`` with all (deformed).
+
+    These are ready-made targets for ``estimate``.
+    """
+    out = Path(out)
+    matched = [surface(u, scene.facet_groups[g]) for g in scene.matched]
+    if scene.comm.rank == 0:
+        import pyvista as pv
+
+        out.mkdir(parents=True, exist_ok=True)
+        for g, mesh in zip(scene.matched, matched):
+            mesh.save(out / f"surface_{g}.vtp")
+        if matched:
+            pv.merge(matched).clean(tolerance=0.0).save(out / "surface.vtp")
+
+
 def write_solution(out: Path, scene, u: fem.Function, result: dict, target=None, title: str = "") -> dict:
     """Everything a solve leaves behind: result.json, displacement.bp, surfaces, screenshot.png.
 
@@ -121,14 +138,8 @@ def write_solution(out: Path, scene, u: fem.Function, result: dict, target=None,
     else:
         scene.mesh.topology.create_connectivity(tdim - 1, tdim)
         context = gather_entities(u, tdim - 1, dolfinx.mesh.exterior_facet_indices(scene.mesh.topology))
-    matched = [surface(u, scene.facet_groups[g]) for g in scene.matched]
+    write_matched_surfaces(out, scene, u)
     if scene.comm.rank == 0:
-        import pyvista as pv
-
-        for g, mesh in zip(scene.matched, matched):
-            mesh.save(out / f"surface_{g}.vtp")
-        if matched:
-            pv.merge(matched).clean(tolerance=0.0).save(out / "surface.vtp")
         render(out / "screenshot.png", deformed, reference, polydata(*context), target, title, dim=scene.gdim)
     write_json(result, out / "result.json", scene.comm)
     return result

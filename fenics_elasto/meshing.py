@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fenics_elasto.errors import require
+from fenics_elasto.errors import UserError, require
 
 GEO_DIR = Path(__file__).parent / "meshes"
 SCENES = ("letter-a", "cantilever", "inclusion", "prostate-phantom")
@@ -40,7 +40,10 @@ class _Gmsh:
 
 def _write_msh(gmsh, path: Path, dim: int) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
-    gmsh.model.mesh.generate(dim)
+    try:
+        gmsh.model.mesh.generate(dim)
+    except Exception as err:  # gmsh raises a bare Exception with its last error
+        raise UserError(f"gmsh could not mesh {path.name} at this size ({err}); try another --size") from None
     gmsh.option.setNumber("Mesh.MshFileVersion", 4.1)
     gmsh.option.setNumber("Mesh.SaveAll", 0)
     gmsh.write(str(path))

@@ -1,0 +1,31 @@
+"""Synthetic targets for the inverse tests, always made on a different, finer mesh."""
+
+from pathlib import Path
+
+import numpy as np
+
+from fenics_elasto.elasticity import ElasticModel
+from fenics_elasto.io import write_matched_surfaces
+from fenics_elasto.meshing import build_scene
+from fenics_elasto.scene import load_scene
+from fenics_elasto.simulate import probe, simulate, write_landmarks
+
+
+def fine_simulation(name: str, folder: Path, size: float, settings=()):
+    """Simulate a built-in scene on a fine mesh; write its matched surfaces."""
+    problem = build_scene(name, folder, size=size)
+    scene = load_scene(problem, list(settings))
+    sim = simulate(scene)
+    write_matched_surfaces(folder / "target", scene, sim.u)
+    return scene, sim
+
+
+def landmarks_for(source_problem: Path, sim, path: Path, noise: float = 0.0, seed: int = 0) -> Path:
+    """Exact node correspondence: the fine solution probed at the source's matched nodes."""
+    source = load_scene(source_problem)
+    nodes = ElasticModel(source).node_set(source.matched)
+    points = nodes.gather(nodes.coords)
+    moved = points + probe(sim.u, points)
+    moved += noise * np.random.default_rng(seed).standard_normal(moved.shape)
+    write_landmarks(path, points, moved)
+    return path
