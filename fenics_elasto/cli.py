@@ -59,7 +59,8 @@ def _simulate(args) -> None:
 def _estimate(args) -> None:
     from fenics_elasto.estimate import run_estimate
 
-    run_estimate(args.problem, args.out, args.set)
+    result = run_estimate(args.problem, args.out, args.set)
+    return 130 if result["interrupted"] else 0
 
 
 def _render(args) -> None:
@@ -80,12 +81,14 @@ COMMANDS = {"mesh": _mesh, "simulate": _simulate, "estimate": _estimate, "render
 def main(argv=None) -> int:
     args = _parser().parse_args(argv)
     try:
-        COMMANDS[args.command](args)
+        return COMMANDS[args.command](args) or 0
     except UserError as err:
         if MPI.COMM_WORLD.rank == 0:
             print(f"error: {err}", file=sys.stderr, flush=True)
         return 2
-    return 0
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr, flush=True)
+        return 130
 
 
 if __name__ == "__main__":

@@ -41,6 +41,7 @@ class Options:
     scan: int = 5  # material values per estimated constant in the initial scan
     inner_tol: float = 1e-6  # relative decrease of Phi that ends the inner loop
     full_gn_limit: int = 4000  # largest full force space for which "auto" picks Gauss-Newton
+    anchor: float = 1e-4  # Gauss-Newton: pull towards the surface-matched start (see _gauss_newton)
 
     @classmethod
     def from_scene(cls, scene) -> "Options":
@@ -89,6 +90,7 @@ class NestedEstimator:
         self.evaluate = problem.evaluate_forces if inner == "lbfgs-forces" else problem.evaluate_displacement
         self.control_scale = 1.0
         self.phi_scale = 1.0
+        self.anchor = None  # reduced coordinates of the surface-matched boundary displacement
 
     # --- variables: log E and nu
 
@@ -147,26 +149,36 @@ class NestedEstimator:
         return res.x * self.control_scale, ev, res.nit
 
     def _gauss_newton(self, theta, q):
-        """Levenberg-Marquardt on the point-to-plane residuals; x(q) = x0 + J q exactly."""
+        """Levenberg-Marquardt on the exact closest-feature curvature; x(q) = x0 + J q exactly.
+
+        Surface distances do not see nodes sliding along the target, so a faint pull
+        (``anchor`` times the mean curvature) towards the surface-matched start keeps
+        the unseen, tangential part of the boundary motion where matching put it.
+        """
         p = self.problem
         J = p.response(theta, self.basis)
         n, gdim, r = J.shape
         flat = J.reshape(n * gdim, r)
+        q0 = self.anchor if self.anchor is not None else q.copy()
+        pull = None
 
         def misfit(q):
             x = p.matched_coords + (flat @ q).reshape(n, gdim)
             res = p.target.residual(x)
-            return x, res, 0.5 * float(np.sum(res**2))
+            return x, res, 0.5 * float(np.sum(res**2)) + 0.5 * pull * float(np.sum((q - q0) ** 2))
 
-        x, res, phi = misfit(q)
         damping, nit = 1e-3, 0
         for nit in range(1, self.options.inner_maxiter + 1):
+            x = p.matched_coords + (flat @ q).reshape(n, gdim)
             A = np.einsum("lkd,ldr->lkr", p.target.curvature_directions(x), J).reshape(-1, r)
             H = A.T @ A
-            grad = flat.T @ res.ravel()
-            scale = np.diag(H) + 1e-9 * np.max(np.diag(H), initial=1e-300)
-            while True:  # Levenberg-Marquardt: damp until the true misfit decreases
-                step = np.linalg.solve(H + damping * np.diag(scale), -grad)
+            if pull is None:
+                pull = self.options.anchor * float(np.mean(np.diag(H)))
+                x, res, phi = misfit(q)
+            H[np.diag_indices(r)] += pull
+            grad = flat.T @ res.ravel() + pull * (q - q0)
+            while True:  # Levenberg-Marquardt: damp until the objective decreases
+                step = np.linalg.solve(H + damping * np.diag(np.diag(H)), -grad)
                 x_new, res_new, phi_new = misfit(q + step)
                 if phi_new < phi or damping > 1e10:
                     break
@@ -174,7 +186,7 @@ class NestedEstimator:
             if phi_new >= phi:
                 break
             decrease = phi - phi_new
-            q, x, res, phi = q + step, x_new, res_new, phi_new
+            q, res, phi = q + step, res_new, phi_new
             damping = max(damping / 10.0, 1e-12)
             if decrease <= self.options.inner_tol * phi:
                 break
@@ -204,6 +216,7 @@ class NestedEstimator:
         theta0 = p.initial_theta()
         d0 = self.matched_boundary_displacement()
         controls0 = self.initial_controls(theta0, d0)
+        self.anchor = controls0 if self.inner == "gauss-newton" else None
         self.control_scale = max(float(np.sqrt(np.mean(controls0**2))), 1e-300)
         self.phi_scale = max(self.evaluate(theta0, self.boundary(controls0) if self.inner == "gauss-newton"
                                            else controls0).phi, 1e-300)

@@ -16,8 +16,9 @@ GEO_DIR = Path(__file__).parent / "meshes"
 SCENES = ("letter-a", "cantilever", "inclusion", "prostate-phantom")
 
 
-class _Gmsh:
-    """A fresh gmsh model, closed again on exit."""
+class GmshModel:
+    """A fresh gmsh model with default options (they are global and would leak
+    from one scene to the next), cleared again on exit."""
 
     def __init__(self, name: str):
         self.name = name
@@ -27,8 +28,9 @@ class _Gmsh:
 
         if not gmsh.isInitialized():
             gmsh.initialize(interruptible=False)
-        gmsh.option.setNumber("General.Terminal", 0)
         gmsh.clear()
+        gmsh.option.restoreDefaults()
+        gmsh.option.setNumber("General.Terminal", 0)
         gmsh.model.add(self.name)
         return gmsh
 
@@ -50,7 +52,7 @@ def _write_msh(gmsh, path: Path, dim: int) -> None:
 
 
 def _mesh_geo(geo: str, path: Path, dim: int, numbers: dict) -> None:
-    with _Gmsh(path.stem) as gmsh:
+    with GmshModel(path.stem) as gmsh:
         for key, value in numbers.items():
             gmsh.parser.setNumber(key, [float(value)])
         gmsh.merge(str(GEO_DIR / geo))
@@ -206,7 +208,7 @@ def build_prostate_phantom(out: Path, size: float | None = None, seed: int = 0) 
     h = size or 1.0
     organs = phantom_organs(seed)
     half = (6.0, 5.0, 5.0)
-    with _Gmsh("phantom") as gmsh:
+    with GmshModel("phantom") as gmsh:
         occ = gmsh.model.occ
 
         def ellipsoid(organ):

@@ -190,6 +190,7 @@ def read_msh(path: Path, comm=MPI.COMM_WORLD):
         require(path.is_file(), f"{path}: no such mesh file")
         if not gmsh.isInitialized():
             gmsh.initialize(interruptible=False)
+        gmsh.clear()
         gmsh.option.setNumber("General.Terminal", 0)
         gmsh.model.add(path.stem)
         try:

@@ -9,7 +9,7 @@ import dolfinx
 from dolfinx import fem
 
 from fenics_elasto.elasticity import ElasticModel
-from fenics_elasto.meshing import build_cantilever
+from fenics_elasto.meshing import GmshModel, build_cantilever
 from fenics_elasto.scene import load_scene
 from fenics_elasto.simulate import material_values, prescribed_function, simulate
 
@@ -80,18 +80,20 @@ def test_patch_linear_field_reproduced(scenes, degree):
 
 
 def hollow_sphere(path, h, a=1.0, b=2.0):
-    import gmsh
+    with GmshModel("sphere") as gmsh:
+        _sphere(gmsh, path, h, a, b)
+    (path / "problem.toml").write_text('mesh = "sphere.msh"\n[materials.shell]\nE = 100.0\nnu = 0.3\n'
+                                       '[boundary]\nfixed = []\n[boundary.displacement.outer]\nscale = 0.0\n')
+    return path / "problem.toml"
 
-    gmsh.initialize(interruptible=False)
-    gmsh.option.setNumber("General.Terminal", 0)
-    gmsh.clear()
+
+def _sphere(gmsh, path, h, a, b):
     outer = gmsh.model.occ.addSphere(0, 0, 0, b)
     inner = gmsh.model.occ.addSphere(0, 0, 0, a)
     gmsh.model.occ.cut([(3, outer)], [(3, inner)])
     gmsh.model.occ.synchronize()
     vol = gmsh.model.getEntities(3)[0][1]
     faces = [t for _, t in gmsh.model.getBoundary([(3, vol)], oriented=False)]
-    radius = {f: np.linalg.norm(gmsh.model.occ.getCenterOfMass(2, f)) for f in faces}
     areas = {f: gmsh.model.occ.getMass(2, f) for f in faces}
     gmsh.model.addPhysicalGroup(3, [vol], name="shell")
     gmsh.model.addPhysicalGroup(2, [f for f in faces if areas[f] < 2 * np.pi * a * a * 2.5], name="inner")
@@ -99,10 +101,6 @@ def hollow_sphere(path, h, a=1.0, b=2.0):
     gmsh.option.setNumber("Mesh.MeshSizeMax", h)
     gmsh.model.mesh.generate(3)
     gmsh.write(str(path / "sphere.msh"))
-    gmsh.clear()
-    (path / "problem.toml").write_text('mesh = "sphere.msh"\n[materials.shell]\nE = 100.0\nnu = 0.3\n'
-                                       '[boundary]\nfixed = []\n[boundary.displacement.outer]\nscale = 0.0\n')
-    return path / "problem.toml"
 
 
 @pytest.mark.slow

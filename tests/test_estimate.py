@@ -1,0 +1,174 @@
+"""Parameter recovery from targets simulated on a different, finer mesh; noise; MPI;
+interrupts; and bad input for `estimate`."""
+
+import json
+import signal
+import subprocess
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import BIN, assert_picture, run_cli
+from fenics_elasto.cli import main
+from fenics_elasto.estimate import estimate
+from fenics_elasto.meshing import build_scene
+from fenics_elasto.objective import InverseProblem
+from fenics_elasto.scene import load_scene
+from targets import fine_simulation, landmarks_for
+
+
+@pytest.fixture(scope="module")
+def letter_source(tmp_path_factory):
+    return build_scene("letter-a", tmp_path_factory.mktemp("letter_source"))
+
+
+def _letter_target(tmp_path, nu):
+    fine_simulation("letter-a", tmp_path / "fine", 0.2, [f"materials.letter.nu={nu}"])
+    return tmp_path / "fine" / "target" / "surface.vtp"
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("nu", [0.1, 0.4])
+def test_letter_a_recovers_poisson_ratio(letter_source, tmp_path, nu):
+    target = _letter_target(tmp_path, nu)
+    problem = InverseProblem(load_scene(letter_source, [f"target.surface='{target}'"]))
+    result, _, _ = estimate(problem, say=lambda *_: None)
+    found = result["materials"]["letter"]["nu"]
+    assert abs(found - nu) / nu < 0.02, found
+    assert result["objective"]["final"] < 1e-2 * result["objective"]["undeformed"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("ratio", [2, 5, 10])
+def test_inclusion_recovers_E_ratio(tmp_path, ratio):
+    source = build_scene("inclusion", tmp_path / "source")
+    fine_simulation("inclusion", tmp_path / "fine", 0.25, [f"materials.inclusion.E={10.0 * ratio}"])
+    targets = {g: str(tmp_path / "fine" / "target" / f"surface_{g}.vtp") for g in ("outline", "interface")}
+    table = ", ".join(f"{g}='{f}'" for g, f in targets.items())
+    problem = InverseProblem(load_scene(source, [f"target.surfaces={{{table}}}"]))
+    result, _, _ = estimate(problem, say=lambda *_: None)
+    found = result["materials"]["inclusion"]["E"] / result["materials"]["matrix"]["E"]
+    assert abs(found - ratio) / ratio < 0.03, found
+
+
+@pytest.mark.slow
+def test_noisy_target_bounded_error(letter_source, tmp_path):
+    """1 % noise (of the largest displacement) on every target vertex."""
+    import pyvista as pv
+
+    nu = 0.25
+    target = _letter_target(tmp_path, nu)
+    surface = pv.read(target)
+    scale = 0.01 * np.linalg.norm(surface.point_data["displacement"], axis=1).max()
+    rng = np.random.default_rng(7)
+    surface.points[:, :2] += scale * rng.standard_normal((surface.n_points, 2))
+    surface.save(tmp_path / "noisy.vtp")
+    problem = InverseProblem(load_scene(letter_source, [f"target.surface='{tmp_path / 'noisy.vtp'}'"]))
+    result, _, _ = estimate(problem, say=lambda *_: None)
+    error = abs(result["materials"]["letter"]["nu"] - nu) / nu
+    print(f"1 % noise: nu error {100 * error:.2f} %")
+    assert error < 0.05
+
+
+@pytest.mark.slow
+def test_estimate_cli_outputs_and_two_ranks(letter_source, tmp_path):
+    target = _letter_target(tmp_path, 0.3)
+    results = {}
+    for ranks in (1, 2):
+        out = tmp_path / f"ranks{ranks}"
+        proc = run_cli("estimate", letter_source, "--out", out, "--set", f"target.surface='{target}'", mpi=ranks)
+        assert proc.returncode == 0, proc.stderr[-2000:]
+        results[ranks] = json.loads((out / "result.json").read_text())
+    serial, parallel = results[1], results[2]
+    for key in ("materials", "objective", "surface_distance", "iterations", "factorizations", "dofs",
+                "force_dofs", "rank", "wall_time_s"):
+        assert key in serial, key
+    assert parallel["mpi_ranks"] == 2
+    assert abs(serial["materials"]["letter"]["nu"] - 0.3) < 0.006
+    assert abs(parallel["materials"]["letter"]["nu"] - serial["materials"]["letter"]["nu"]) < 1e-5
+    assert abs(parallel["objective"]["final"] - serial["objective"]["final"]) < 1e-3 * serial["objective"]["final"]
+    out = tmp_path / "ranks1"
+    for name in ("screenshot.png", "convergence.png"):
+        assert_picture(out / name)
+    assert (out / "surface.vtp").exists() and (out / "displacement.bp").exists()
+
+
+@pytest.mark.slow
+def test_ctrl_c_writes_the_best_result_so_far(tmp_path):
+    """A 3D estimate interrupted after its first evaluations still leaves result.json."""
+    source = build_scene("prostate-phantom", tmp_path / "source", size=1.6)
+    _, sim = fine_simulation("prostate-phantom", tmp_path / "fine", 1.3, ["materials.prostate.E=50"])
+    landmarks = landmarks_for(source, sim, tmp_path / "landmarks.csv")
+    out = tmp_path / "result"
+    proc = subprocess.Popen([str(BIN / "fenics-elasto"), "estimate", str(source), "--out", str(out),
+                             "--set", f"target={{landmarks='{landmarks}'}}"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    for line in proc.stdout:
+        if line.strip().startswith("scan") and "Phi*" in line:
+            break
+    time.sleep(1.0)
+    proc.send_signal(signal.SIGINT)
+    stdout, stderr = proc.communicate(timeout=300)
+    assert proc.returncode == 130, stderr[-2000:]
+    result = json.loads((out / "result.json").read_text())
+    assert result["interrupted"] is True
+    assert result["materials"]["prostate"]["E"] > 0 and len(result["history"]) >= 1
+    assert "Traceback" not in stderr
+
+
+# --------------------------------------------------------------------------- bad input
+
+
+def _expect_error(capsys, argv, *words):
+    assert main([str(a) for a in argv]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: ") and "\n" not in err, err
+    for word in words:
+        assert word in err, err
+
+
+@pytest.fixture(scope="module")
+def letter_target(tmp_path_factory):
+    return _letter_target(tmp_path_factory.mktemp("letter_target"), 0.3)
+
+
+def test_missing_and_unreadable_target(letter_source, tmp_path, capsys):
+    _expect_error(capsys, ["estimate", letter_source, "--out", tmp_path, "--set", "target.surface='nowhere.vtp'"],
+                  "nowhere.vtp")
+    (tmp_path / "junk.vtp").write_text("not a vtk file")
+    _expect_error(capsys, ["estimate", letter_source, "--out", tmp_path, "--set", f"target.surface='{tmp_path / 'junk.vtp'}'"],
+                  "junk.vtp")
+
+
+def test_target_in_the_wrong_dimension(scenes, letter_target, tmp_path, capsys):
+    _expect_error(capsys, ["estimate", scenes["prostate-phantom"], "--out", tmp_path,
+                           "--set", f"target.surface='{letter_target}'"], "3D", "triangle")
+
+
+def test_nothing_to_estimate(letter_source, letter_target, tmp_path, capsys):
+    _expect_error(capsys, ["estimate", letter_source, "--out", tmp_path, "--set", f"target.surface='{letter_target}'",
+                           "--set", "materials.letter.nu=0.3"], "nothing to estimate")
+
+
+def test_every_E_estimated_is_refused(letter_source, letter_target, tmp_path, capsys):
+    _expect_error(capsys, ["estimate", letter_source, "--out", tmp_path, "--set", f"target.surface='{letter_target}'",
+                           "--set", "materials.letter.E={estimate=true, initial=5.0, bounds=[1.0, 50.0]}"],
+                  "ratios", "reference")
+
+
+def test_target_far_from_the_source(letter_source, letter_target, tmp_path, capsys):
+    import pyvista as pv
+
+    far = pv.read(letter_target)
+    far.points[:, 0] += 100.0
+    far.save(tmp_path / "far.vtp")
+    _expect_error(capsys, ["estimate", letter_source, "--out", tmp_path, "--set", f"target.surface='{tmp_path / 'far.vtp'}'"],
+                  "does not overlap")
+
+
+def test_bad_landmarks(letter_source, tmp_path, capsys):
+    (tmp_path / "lm.csv").write_text("1,2,3\n4,5,6\n")
+    _expect_error(capsys, ["estimate", letter_source, "--out", tmp_path, "--set", f"target={{landmarks='{tmp_path / 'lm.csv'}'}}"],
+                  "columns")
