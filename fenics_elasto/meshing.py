@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from fenics_elasto.errors import UserError, require
+from fenics_elasto.scene import fresh_gmsh_model
 
 GEO_DIR = Path(__file__).parent / "meshes"
 SCENES = ("letter-a", "cantilever", "inclusion", "prostate-phantom")
@@ -24,15 +25,7 @@ class GmshModel:
         self.name = name
 
     def __enter__(self):
-        import gmsh
-
-        if not gmsh.isInitialized():
-            gmsh.initialize(interruptible=False)
-        gmsh.clear()
-        gmsh.option.restoreDefaults()
-        gmsh.option.setNumber("General.Terminal", 0)
-        gmsh.model.add(self.name)
-        return gmsh
+        return fresh_gmsh_model(self.name)
 
     def __exit__(self, *exc):
         import gmsh

@@ -161,6 +161,21 @@ def _on_root(comm, work):
     return result
 
 
+def fresh_gmsh_model(name: str):
+    """An empty gmsh model with default options (options are global: they would leak
+    from one model to the next); gmsh stays quiet."""
+    import gmsh
+
+    if not gmsh.isInitialized():
+        gmsh.initialize(interruptible=False)
+    gmsh.option.setNumber("General.Terminal", 0)
+    gmsh.clear()
+    gmsh.option.restoreDefaults()
+    gmsh.option.setNumber("General.Terminal", 0)
+    gmsh.model.add(name)
+    return gmsh
+
+
 def _gmsh_facet_groups(gmsh, tdim: int) -> dict[str, np.ndarray]:
     """Every facet physical group's facets as rows of 0-based input node indices."""
     groups = {}
@@ -188,11 +203,7 @@ def read_msh(path: Path, comm=MPI.COMM_WORLD):
 
     def open_model():
         require(path.is_file(), f"{path}: no such mesh file")
-        if not gmsh.isInitialized():
-            gmsh.initialize(interruptible=False)
-        gmsh.clear()
-        gmsh.option.setNumber("General.Terminal", 0)
-        gmsh.model.add(path.stem)
+        fresh_gmsh_model(path.stem)
         try:
             gmsh.merge(str(path))
         except Exception as err:  # gmsh raises a bare Exception with its last error
