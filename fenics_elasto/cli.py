@@ -28,6 +28,14 @@ def _parser() -> argparse.ArgumentParser:
         p.add_argument("--out", required=True, type=Path)
         p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a TOML value")
 
+    p = sub.add_parser("train", help="PCA force bases from example target surfaces")
+    p.add_argument("problem", type=Path)
+    p.add_argument("--examples", nargs="+", required=True, type=Path,
+                   help="target surfaces, or folders of surface_<group>.vtp (as simulate writes)")
+    p.add_argument("--rank", type=int, required=True)
+    p.add_argument("--out", type=Path, required=True, help="bases .npz")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+
     p = sub.add_parser("render", help="re-draw the picture of a result folder")
     p.add_argument("result_dir", type=Path)
     p.add_argument("--out", type=Path, default=None)
@@ -63,6 +71,25 @@ def _estimate(args) -> None:
     return 130 if result["interrupted"] else 0
 
 
+def _train(args) -> None:
+    from fenics_elasto.objective import InverseProblem
+    from fenics_elasto.reduction import train_bases
+    from fenics_elasto.render import plot_variance
+    from fenics_elasto.scene import load_scene
+
+    scene = load_scene(args.problem, args.set)
+    problem = InverseProblem(scene, target=False)
+    _say(f"train: {len(args.examples)} examples, {problem.force_dofs} force dofs, rank {args.rank}")
+    bases = train_bases(problem, args.examples, args.rank, say=_say)
+    if MPI.COMM_WORLD.rank == 0:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        bases.save(args.out)
+        plot_variance(bases.variance, args.out.with_suffix(".png"))
+    kept = bases.variance.sum()
+    _say(f"wrote {args.out} (rank {bases.W.shape[1]}, {100 * kept:.2f} % of the example energy) "
+         f"and {args.out.with_suffix('.png')}")
+
+
 def _render(args) -> None:
     from fenics_elasto.render import render_folder
 
@@ -75,7 +102,7 @@ def _say(text: str) -> None:
         print(text, flush=True)
 
 
-COMMANDS = {"mesh": _mesh, "simulate": _simulate, "estimate": _estimate, "render": _render}
+COMMANDS = {"mesh": _mesh, "simulate": _simulate, "estimate": _estimate, "train": _train, "render": _render}
 
 
 def main(argv=None) -> int:

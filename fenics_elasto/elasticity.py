@@ -61,15 +61,29 @@ def epsilon(u):
 class NodeSet:
     """Owned nodes (blocks of the vector space) of a boundary, numbered across ranks.
 
-    Rank r holds global positions offset .. offset + len(blocks); ``gather`` and
-    ``local`` move per-node arrays between that numbering and this rank's part.
+    The global numbering is canonical -- nodes sorted by position -- so forces, bases
+    and landmarks mean the same under any number of MPI ranks. ``gather`` brings
+    per-node rows of every rank into that order; ``local`` picks this rank's rows.
     """
 
     blocks: np.ndarray  # local block indices, owned only
     coords: np.ndarray  # (n, gdim) reference positions
-    offset: int
-    total: int
+    order: np.ndarray  # canonical position -> position in rank-concatenated order
+    positions: np.ndarray  # this rank's nodes' canonical positions
     comm: MPI.Comm
+
+    @classmethod
+    def create(cls, blocks, coords, comm) -> "NodeSet":
+        stacked = np.concatenate(comm.allgather(coords))
+        order = np.lexsort(np.round(stacked, 10).T[::-1]) if len(stacked) else np.zeros(0, int)
+        inverse = np.empty_like(order)
+        inverse[order] = np.arange(len(order))
+        offset = comm.exscan(len(blocks)) or 0
+        return cls(blocks, coords, order, inverse[offset : offset + len(blocks)], comm)
+
+    @property
+    def total(self) -> int:
+        return len(self.order)
 
     def __len__(self) -> int:
         return len(self.blocks)
@@ -79,12 +93,12 @@ class NodeSet:
         return self.blocks[:, None] * bs + np.arange(bs)
 
     def gather(self, values: np.ndarray) -> np.ndarray:
-        """Per-node rows of every rank, in global order, on every rank."""
-        parts = self.comm.allgather(np.ascontiguousarray(values))
-        return np.concatenate(parts)
+        """Per-node rows of every rank, in canonical order, on every rank."""
+        return np.concatenate(self.comm.allgather(np.ascontiguousarray(values)))[self.order]
 
     def local(self, values: np.ndarray) -> np.ndarray:
-        return values[self.offset : self.offset + len(self.blocks)]
+        """This rank's rows of a canonical per-node array."""
+        return values[self.positions]
 
 
 # --------------------------------------------------------------------------- the model
@@ -135,9 +149,7 @@ class ElasticModel:
         blocks = self.boundary_blocks(groups, vertices_only)
         if exclude_groups:
             blocks = np.setdiff1d(blocks, self.boundary_blocks(exclude_groups)).astype(np.int32)
-        offset = self.comm.exscan(len(blocks)) or 0
-        total = self.comm.allreduce(len(blocks))
-        return NodeSet(blocks, self.dof_coords[blocks], offset, total, self.comm)
+        return NodeSet.create(blocks, self.dof_coords[blocks], self.comm)
 
     def clamped_dofs(self, groups) -> np.ndarray:
         """Owned local unrolled DOFs of the nodes on the groups."""

@@ -40,7 +40,7 @@ class Options:
     outer_maxiter: int = 40
     scan: int = 5  # material values per estimated constant in the initial scan
     inner_tol: float = 1e-6  # relative decrease of Phi that ends the inner loop
-    full_gn_limit: int = 4000  # largest full force space for which "auto" picks Gauss-Newton
+    full_gn_limit: int = 1500  # largest full force space for which "auto" picks Gauss-Newton
     anchor: float = 1e-4  # Gauss-Newton: pull towards the surface-matched start (see _gauss_newton)
 
     @classmethod
@@ -264,7 +264,7 @@ def check_overlap(problem: InverseProblem) -> float:
     return 0.5 * float(np.sum(residual**2))
 
 
-def estimate(problem: InverseProblem, options: Options | None = None, say=print):
+def estimate(problem: InverseProblem, options: Options | None = None, say=print, basis: np.ndarray | None = None):
     """Run the nested optimisation -> (result dict, displacement, forces).
 
     On Ctrl-C it stops and returns the best result so far (``interrupted``: true).
@@ -276,7 +276,7 @@ def estimate(problem: InverseProblem, options: Options | None = None, say=print)
     require(fixed_E, f"{scene.path}: every E is estimated, but with unknown boundary forces only ratios of E "
                      "are identifiable (scaling K and F together leaves u unchanged): fix one region's E as the reference")
     phi_undeformed = check_overlap(problem)
-    estimator = NestedEstimator(problem, options or Options.from_scene(scene), say)
+    estimator = NestedEstimator(problem, options or Options.from_scene(scene), say, basis)
     interrupted = False
     try:
         estimator.run()
@@ -298,7 +298,8 @@ def estimate(problem: InverseProblem, options: Options | None = None, say=print)
         "solves": {"forward": problem.forward_solves, "adjoint": problem.adjoint_solves},
         "dofs": problem.model.num_dofs,
         "force_dofs": problem.force_dofs,
-        "rank": None,
+        "rank": None if basis is None else int(basis.shape[1]),
+        "inner_solver": estimator.inner,
         "degree": scene.degree,
         "mpi_ranks": comm.size,
         "interrupted": interrupted,
@@ -316,10 +317,12 @@ def run_estimate(problem_path: Path, out: Path, overrides=()) -> dict:
 
     scene = load_scene(problem_path, overrides)
     problem = InverseProblem(scene)
+    basis = reduced_basis(problem)
     say = (lambda text: print(text, flush=True)) if scene.comm.rank == 0 else (lambda *_: None)
     say(f"estimate {', '.join(f'{m}.{k}' for m, k in problem.estimated)}: {problem.model.num_dofs} dofs, "
-        f"{problem.force_dofs} force dofs, {problem.matched.total} matched nodes")
-    result, u, _ = estimate(problem, say=say)
+        f"{problem.force_dofs} force dofs" + (f" reduced to rank {basis.shape[1]}" if basis is not None else "")
+        + f", {problem.matched.total} matched nodes")
+    result, u, _ = estimate(problem, say=say, basis=basis)
     target = target_polydata(problem) if scene.comm.rank == 0 else None
     out = Path(out)
     write_solution(out, scene, u, result, target=target, title=_title(result))
@@ -329,6 +332,22 @@ def run_estimate(problem_path: Path, out: Path, overrides=()) -> dict:
     say(f"{_title(result)}; rms distance {result['surface_distance']['rms']:.3g}, "
         f"{result['factorizations']} factorizations, {result['wall_time_s']:.1f} s -> {out}")
     return result
+
+
+def reduced_basis(problem: InverseProblem) -> np.ndarray | None:
+    """W from the scene's [reduction] table (bases file and rank), or None."""
+    from fenics_elasto.reduction import load_bases
+
+    scene = problem.scene
+    table = scene.config.get("reduction")
+    if not table:
+        return None
+    require(isinstance(table, dict) and "bases" in table, f"{scene.path}: [reduction] needs bases = \"file.npz\"")
+    unknown = set(table) - {"bases", "rank"}
+    require(not unknown, f"{scene.path}: [reduction]: unknown key(s) {sorted(unknown)}")
+    rank = table.get("rank")
+    require(rank is None or (isinstance(rank, int) and rank >= 1), f"{scene.path}: reduction.rank must be an integer >= 1")
+    return load_bases(scene.path.parent / table["bases"], problem, rank).W
 
 
 def _title(result: dict) -> str:

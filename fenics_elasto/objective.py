@@ -32,7 +32,8 @@ class Evaluation:
 class InverseProblem:
     """Forward and adjoint solves of one scene with unknown loaded-node forces."""
 
-    def __init__(self, scene: Scene, model: ElasticModel | None = None, target: Target | None = None):
+    def __init__(self, scene: Scene, model: ElasticModel | None = None, target: Target | None | bool = None):
+        """``target``: a Target, None to read the scene's [target], False for none (training)."""
         require(scene.loaded, f"{scene.path}: boundary.loaded is empty: the unknown forces need a loaded boundary")
         require(scene.matched, f"{scene.path}: boundary.matched is empty: nothing to compare with the target")
         self.scene = scene
@@ -44,7 +45,7 @@ class InverseProblem:
         self.loaded = self.model.node_set(scene.loaded, exclude_groups=scene.fixed)
         self.matched = self.model.node_set(scene.matched, vertices_only=scene.match_vertices_only)
         self.matched_coords = self.matched.gather(self.matched.coords)
-        self.target = target or load_target(scene, self.matched_coords, self.matched_groups())
+        self.target = load_target(scene, self.matched_coords, self.matched_groups()) if target is None else target
         self.forward_solves = 0
         self.adjoint_solves = 0
 

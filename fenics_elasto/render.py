@@ -137,3 +137,23 @@ def plot_convergence(result: dict, path: Path) -> Path:
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def plot_variance(variance: np.ndarray, path: Path) -> Path:
+    """Explained variance per principal component and its running sum."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    k = np.arange(1, len(variance) + 1)
+    ax.bar(k, variance, color="C0", label="per component")
+    ax.plot(k, np.cumsum(variance), "o-", color="C3", label="cumulative")
+    ax.set(xlabel="principal component", ylabel="explained variance (fraction)", ylim=(0, 1.05),
+           title="force bases: explained variance")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return Path(path)
