@@ -1,0 +1,106 @@
+"""Reduced force bases: PCA, reduced = full when W spans the answer, Taylor test in
+reduced coordinates, mismatched bases refused, train + reduced estimate end to end."""
+
+import json
+
+import numpy as np
+import pytest
+
+from conftest import run_cli
+from fenics_elasto.errors import UserError
+from fenics_elasto.estimate import estimate
+from fenics_elasto.meshing import build_scene
+from fenics_elasto.objective import InverseProblem
+from fenics_elasto.reduction import load_bases, pca, train_bases
+from fenics_elasto.scene import load_scene
+from targets import fine_simulation
+from test_gradients import taylor_rates
+
+
+def test_pca_recovers_a_known_low_rank_set():
+    rng = np.random.default_rng(0)
+    U = np.linalg.qr(rng.standard_normal((200, 3)))[0]
+    data = U @ (rng.standard_normal((3, 20)) * np.array([[10.0], [3.0], [1.0]]))
+    W, variance = pca(data, 4)
+    assert np.abs(U - W[:, :3] @ (W[:, :3].T @ U)).max() < 1e-10
+    assert abs(variance[:3].sum() - 1.0) < 1e-12 and variance[3] < 1e-20
+    assert np.all(np.diff(variance) <= 0)
+    assert np.allclose(W.T @ W, np.eye(4), atol=1e-12)
+
+
+@pytest.fixture(scope="module")
+def letter(tmp_path_factory):
+    base = tmp_path_factory.mktemp("reduction")
+    fine_simulation("letter-a", base / "fine", 0.25, ["materials.letter.nu=0.35"])
+    source = build_scene("letter-a", base / "source")
+    return source, base / "fine" / "target" / "surface.vtp"
+
+
+def test_reduced_equals_full_when_the_bases_span_the_answer(letter):
+    source, target = letter
+    problem = InverseProblem(load_scene(source, [f"target.surface='{target}'"]))
+    full, u, _ = estimate(problem, say=lambda *_: None)
+    d_star = problem.on_loaded(u)
+    rng = np.random.default_rng(1)
+    W = np.linalg.qr(np.c_[d_star, rng.standard_normal((problem.force_dofs, 3))])[0]
+    reduced, _, _ = estimate(problem, say=lambda *_: None, basis=W)
+    nu_full, nu_reduced = full["materials"]["letter"]["nu"], reduced["materials"]["letter"]["nu"]
+    assert reduced["rank"] == 4 and full["rank"] is None
+    assert abs(nu_reduced - nu_full) < 2e-3 * nu_full, (nu_full, nu_reduced)
+    assert reduced["objective"]["final"] < 1.2 * full["objective"]["final"]
+
+
+def test_taylor_in_reduced_coordinates(letter):
+    source, target = letter
+    problem = InverseProblem(load_scene(source, [f"target.surface='{target}'"]))
+    rng = np.random.default_rng(2)
+    W = np.linalg.qr(rng.standard_normal((problem.force_dofs, 6)))[0]
+    theta, q = np.array([0.3]), 0.3 * rng.standard_normal(6)
+    ev = problem.evaluate_displacement(theta, W @ q, "both")
+    grad_q = W.T @ ev.grad_controls
+    rates, _ = taylor_rates(lambda x: problem.evaluate_displacement(theta, W @ x).phi, q,
+                            rng.standard_normal(6), grad_q, 0.1)
+    assert rates[-2:].min() > 1.8, rates
+
+
+def test_bases_from_another_mesh_are_refused(tmp_path, letter):
+    source, _ = letter
+    trainer = InverseProblem(load_scene(source), target=False)
+    examples = [tmp_path / "ex"]
+    fine_simulation("letter-a", tmp_path / "ex_scene", 0.4, ["boundary.displacement.top.value=[0.2, -0.5]"])
+    (tmp_path / "ex").symlink_to(tmp_path / "ex_scene" / "target")
+    bases = train_bases(trainer, examples, rank=1, say=lambda *_: None)
+    bases.save(tmp_path / "b.npz")
+    assert load_bases(tmp_path / "b.npz", trainer, None).W.shape == (trainer.force_dofs, 1)
+    other = InverseProblem(load_scene(build_scene("letter-a", tmp_path / "other", size=0.5)), target=False)
+    with pytest.raises(UserError, match="other loaded nodes"):
+        load_bases(tmp_path / "b.npz", other, None)
+
+
+@pytest.mark.slow
+def test_train_then_reduced_estimate_from_the_command_line(tmp_path):
+    """Inclusion scene: examples are simulated pushes of the top; the target (finer
+    mesh, E ratio 4) uses a push that is not among them."""
+    source = build_scene("inclusion", tmp_path / "source")
+    rng = np.random.default_rng(3)
+    examples = []
+    for i in range(6):
+        value = [float(rng.uniform(-0.8, 0.8)), float(rng.uniform(-1.0, 0.0))]
+        out = tmp_path / f"sim{i}"
+        proc = run_cli("simulate", source, "--out", out, "--set", f"boundary.displacement.top.value={value}",
+                       "--set", f"materials.inclusion.E={rng.uniform(20, 80):.1f}")
+        assert proc.returncode == 0, proc.stderr
+        examples.append(out)
+    proc = run_cli("train", source, "--examples", *examples, "--rank", 4, "--out", tmp_path / "bases.npz")
+    assert proc.returncode == 0, proc.stderr
+    assert (tmp_path / "bases.png").exists()
+    fine_simulation("inclusion", tmp_path / "fine", 0.25, ["materials.inclusion.E=40.0",
+                                                            "boundary.displacement.top.value=[0.3, -0.6]"])
+    targets = ", ".join(f"{g}='{tmp_path / 'fine' / 'target' / f'surface_{g}.vtp'}'" for g in ("outline", "interface"))
+    proc = run_cli("estimate", source, "--out", tmp_path / "result", "--set", f"target.surfaces={{{targets}}}",
+                   "--set", f"reduction={{bases='{tmp_path / 'bases.npz'}', rank=4}}")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    result = json.loads((tmp_path / "result" / "result.json").read_text())
+    assert result["rank"] == 4 and result["inner_solver"] == "gauss-newton"
+    ratio = result["materials"]["inclusion"]["E"] / result["materials"]["matrix"]["E"]
+    assert abs(ratio - 4.0) / 4.0 < 0.03, ratio
