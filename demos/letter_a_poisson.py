@@ -68,7 +68,7 @@ def main():
     print("|---|---|---|---|---|---|---|")
     for nu, found, err, sec, outer, inner, fact in rows:
         print(f"| {nu:.2f} | {found:.4f} | {err:.2f} | {sec:.2f} | {outer} | {inner} | {fact} |")
-    print(f"(the paper: about 10 % error and 4 s per case)")
+    print("(the paper: about 10 % error and 4 s per case)")
     plot(curves, args.out / "letter_a_poisson.png")
     print(f"Phi*(nu) curves: {args.out / 'letter_a_poisson.png'}")
 

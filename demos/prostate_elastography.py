@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 import fenics_elasto  # noqa: F401
-from fenics_elasto.estimate import estimate
+from fenics_elasto.estimate import Options, estimate
 from fenics_elasto.io import write_matched_surfaces
 from fenics_elasto.meshing import build_scene, phantom_organs
 from fenics_elasto.objective import InverseProblem
@@ -74,11 +74,11 @@ def make_target(out: Path, E: float, size: float) -> dict:
     return {g: str((folder / f"surface_{g}.vtp").resolve()) for g in ORGANS}
 
 
-def run_case(source: Path, target: dict, basis=None):
+def run_case(source: Path, target: dict, basis=None, options=None):
     table = ", ".join(f"{g}='{f}'" for g, f in target.items())
     problem = InverseProblem(load_scene(source, [f"target={{surfaces={{{table}}}}}"]))
     start = time.perf_counter()
-    result, u, _ = estimate(problem, say=lambda *_: None, basis=basis)
+    result, u, _ = estimate(problem, options=options, say=lambda *_: None, basis=basis)
     result["seconds"] = time.perf_counter() - start
     return result, problem, u
 
@@ -102,12 +102,12 @@ def main():
     print(f"   rank {bases.W.shape[1]} of {trainer.force_dofs} force dofs; explained variance "
           + " ".join(f"{v:.3f}" for v in bases.variance), flush=True)
 
-    rows = []
+    rows, targets = [], {}
     for E in cases:
         print(f"3. target with prostate E = {E:g} kPa (fine mesh h = {fine})", flush=True)
-        target = make_target(out, E, fine)
+        target = targets[E] = make_target(out, E, fine)
         reduced, _, _ = run_case(source, target, bases.W)
-        full, _, _ = run_case(source, target)
+        full, _, _ = run_case(source, target, options=Options(inner_maxiter=150))
         rows.append((E, reduced, full))
         for name, r in (("reduced", reduced), ("full", full)):
             print(f"   {name:7s} E = {r['materials']['prostate']['E']:.2f}  ({r['seconds']:.1f} s, "
@@ -115,10 +115,67 @@ def main():
 
     lines = table1(rows, bases.W.shape[1], trainer.force_dofs)
     print("\n".join(lines))
+    print("4. Fig. 8: rank against E error, iterations and time", flush=True)
+    ranks = sorted({r for r in (1, 2, 3, 4, 6, 8, 12, 16, 24) if r <= count})
+    sweep = []
+    for rank in ranks:
+        r, _, _ = run_case(source, targets[cases[len(cases) // 2]], bases.W[:, :rank])
+        sweep.append((rank, abs(r["materials"]["prostate"]["E"] - cases[len(cases) // 2]) / cases[len(cases) // 2],
+                      r["iterations"]["inner"], r["seconds"]))
+        print(f"   rank {rank:2d}: E error {100 * sweep[-1][1]:.1f} %, {sweep[-1][2]} inner iterations, "
+              f"{sweep[-1][3]:.1f} s", flush=True)
+    plot_rank_sweep(sweep, out / "fig8_rank.png")
+    print("5. Fig. 7: the first two force bases on bladder and rectum", flush=True)
+    render_bases(trainer, bases.W, out / "fig7_bases.png")
+    lines += ["", "| rank | E error % | inner iterations | seconds |", "|---|---|---|---|"]
+    lines += [f"| {k} | {100 * e:.1f} | {it} | {sec:.1f} |" for k, e, it, sec in sweep]
+    lines += ["", "![rank sweep](fig8_rank.png)", "", "![first two bases](fig7_bases.png)"]
     (out / "index.md").write_text("# Prostate elastography demo\n\n" + "\n".join(lines) + "\n")
     (out / "table1.json").write_text(json.dumps(
         [{"E_true": E, "reduced": r["materials"]["prostate"]["E"], "full": f["materials"]["prostate"]["E"],
           "reduced_s": r["seconds"], "full_s": f["seconds"]} for E, r, f in rows], indent=2))
+
+
+def plot_rank_sweep(sweep, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    ranks, errors, iterations, seconds = map(np.array, zip(*sweep))
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.8))
+    for ax, values, label in zip(axes, (100 * errors, iterations, seconds),
+                                 ("E error %", "inner iterations", "time s")):
+        ax.plot(ranks, values, "o-")
+        ax.set(xlabel="rank of the force bases", ylabel=label)
+    fig.suptitle("Fig. 8: reduced rank against accuracy and cost")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def render_bases(problem: InverseProblem, W: np.ndarray, path: Path) -> None:
+    """Arrows of the first two bases on the loaded nodes (bladder and rectum)."""
+    import os
+
+    os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
+    import pyvista as pv
+
+    points = problem.loaded.gather(problem.loaded.coords)
+    plotter = pv.Plotter(off_screen=True, shape=(1, 2), window_size=(1600, 800))
+    for k in range(min(2, W.shape[1])):
+        plotter.subplot(0, k)
+        cloud = pv.PolyData(points)
+        vectors = W[:, k].reshape(-1, 3)
+        cloud["mode"] = vectors
+        cloud["|mode|"] = np.linalg.norm(vectors, axis=1)
+        scale = 1.0 / max(cloud["|mode|"].max(), 1e-300)
+        plotter.add_mesh(cloud.glyph(orient="mode", scale="|mode|", factor=0.8 * scale), scalars="|mode|",
+                         cmap="plasma", show_scalar_bar=False)
+        plotter.add_text(f"principal component {k + 1}", font_size=12)
+        plotter.view_vector((1.0, -1.6, 0.7), viewup=(0.0, 0.0, 1.0))
+    plotter.screenshot(str(path))
+    plotter.close()
 
 
 def table1(rows, rank, force_dofs) -> list[str]:
