@@ -90,3 +90,98 @@ def load_bases(path: Path, problem: InverseProblem, rank: int | None) -> Bases:
     require(same, f"{path}: the bases were trained on other loaded nodes ({len(bases.loaded_coords)} nodes) "
                   f"than this scene's ({len(coords)}); train them on this mesh")
     return bases.truncated(rank or bases.W.shape[1])
+
+
+# --------------------------------------------------------------------------- atlas
+
+
+def interpolate_nodes(values: np.ndarray, source: np.ndarray, points: np.ndarray, k: int = 4) -> np.ndarray:
+    """Per-node rows (n_source, ...) carried to ``points`` by inverse-distance weights of
+    the k nearest source nodes (exact where a point coincides with a node)."""
+    from scipy.spatial import cKDTree
+
+    dist, idx = cKDTree(source).query(points, k)
+    weights = 1.0 / np.maximum(dist, 1e-12) ** 2
+    weights /= weights.sum(axis=1, keepdims=True)
+    return np.einsum("pk,pk...->p...", weights, values[idx])
+
+
+@dataclass
+class AtlasFit:
+    """The atlas's loaded nodes placed on one patient's loaded surfaces (paper §3.3.3).
+
+    ``positions`` are the fitted atlas nodes; per-node fields move between the
+    patient's own loaded nodes and the atlas numbering through them.
+    """
+
+    positions: np.ndarray  # (n_atlas, gdim) on the patient
+    patient_nodes: np.ndarray  # (n_patient, gdim) the patient's loaded nodes
+
+    def to_atlas(self, field: np.ndarray) -> np.ndarray:
+        """A field on the patient's loaded nodes (flat, optionally with columns) in atlas numbering."""
+        return _carry(field, self.patient_nodes, self.positions)
+
+    def to_patient(self, field: np.ndarray) -> np.ndarray:
+        """An atlas-numbered field (flat, optionally with columns) on the patient's loaded nodes."""
+        return _carry(field, self.positions, self.patient_nodes)
+
+
+def _carry(field: np.ndarray, source: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Flat per-node field (rows node*gdim + component) from ``source`` nodes to ``points``."""
+    rows = interpolate_nodes(field.reshape(len(source), -1), source, points)
+    return rows.reshape((len(points) * (field.shape[0] // len(source)),) + field.shape[1:])
+
+
+def fit_atlas(atlas: InverseProblem, patient: InverseProblem) -> AtlasFit:
+    """Surface-match the atlas's loaded nodes onto the patient's loaded surfaces."""
+    scene = patient.scene
+    groups = [g for g in scene.loaded]
+    require(groups == list(atlas.scene.loaded), "atlas and patient must name the same loaded groups")
+    # The patient's own (undeformed) loaded surfaces, one per group, as the target.
+    from fenics_elasto.io import surface
+    from fenics_elasto.surface import Surface
+
+    zero = patient.model.function("zero")
+    surfaces = []
+    for g in groups:
+        mesh = surface(zero, scene.facet_groups[g], deformed=False)
+        mesh = scene.comm.bcast(mesh, root=0)
+        pts = np.asarray(mesh.points)[:, : scene.gdim]
+        cells = mesh.lines.reshape(-1, 3)[:, 1:] if scene.gdim == 2 else mesh.faces.reshape(-1, 4)[:, 1:]
+        surfaces.append(Surface(pts, cells))
+    atlas_points = atlas.loaded.gather(atlas.loaded.coords)
+    atlas_groups = _loaded_groups(atlas)
+    target = Target(surfaces, atlas_groups)
+    moved = atlas_points + match_surface(atlas_points, atlas_groups, target)
+    return AtlasFit(moved, patient.loaded.gather(patient.loaded.coords))
+
+
+def _loaded_groups(problem: InverseProblem) -> np.ndarray:
+    """Index into scene.loaded of each loaded node's (first) group, canonical order."""
+    group = np.full(len(problem.loaded), -1)
+    for i, name in reversed(list(enumerate(problem.scene.loaded))):
+        group[np.isin(problem.loaded.blocks, problem.model.boundary_blocks([name]))] = i
+    return problem.loaded.gather(group)
+
+
+def train_atlas_bases(atlas: InverseProblem, patients, rank: int, say=print) -> Bases:
+    """Multi-source training: every patient's example displacements, carried to the
+    atlas's loaded nodes through that patient's atlas fit, share one PCA.
+
+    ``patients``: (InverseProblem, example paths) per patient.
+    """
+    columns = []
+    for i, (patient, examples) in enumerate(patients, 1):
+        fit = fit_atlas(atlas, patient)
+        data = example_displacements(patient, [example_target(patient, Path(p)) for p in examples], lambda *_: None)
+        columns.append(fit.to_atlas(data))
+        say(f"  patient {i}/{len(patients)}: {len(examples)} examples in atlas numbering")
+    data = np.concatenate(columns, axis=1)
+    W, variance = pca(data, min(rank, data.shape[1]))
+    return Bases(W, variance, atlas.loaded.gather(atlas.loaded.coords), data.shape[1])
+
+
+def bases_for_patient(atlas: InverseProblem, bases: Bases, patient: InverseProblem) -> np.ndarray:
+    """Atlas-numbered bases on a (new) patient's loaded nodes, orthonormalised."""
+    W = fit_atlas(atlas, patient).to_patient(bases.W)
+    return np.linalg.qr(W)[0]

@@ -104,3 +104,52 @@ def test_train_then_reduced_estimate_from_the_command_line(tmp_path):
     assert result["rank"] == 4 and result["inner_solver"] == "gauss-newton"
     ratio = result["materials"]["inclusion"]["E"] / result["materials"]["matrix"]["E"]
     assert abs(ratio - 4.0) / 4.0 < 0.03, ratio
+
+
+def test_atlas_fit_carries_fields_between_patients(tmp_path):
+    """An affine field sampled on a patient's loaded nodes survives the trip to the
+    atlas numbering and back; the fitted atlas nodes lie on the patient's organs."""
+    from scipy.spatial import cKDTree
+
+    from fenics_elasto.reduction import fit_atlas
+
+    atlas = InverseProblem(load_scene(build_scene("prostate-phantom", tmp_path / "atlas", size=1.6)), target=False)
+    patient = InverseProblem(load_scene(build_scene("prostate-phantom", tmp_path / "p", size=1.6, seed=5)),
+                             target=False)
+    fit = fit_atlas(atlas, patient)
+    gap = cKDTree(fit.patient_nodes).query(fit.positions)[0]
+    assert gap.max() < 0.5 and np.median(gap) < 0.2  # node spacing on the organs is ~0.56
+    field = (fit.patient_nodes @ np.array([[0.1, 0.0, 0.02], [0.0, -0.05, 0.0], [0.03, 0.0, 0.1]])).ravel()
+    back = fit.to_patient(fit.to_atlas(field))
+    assert np.abs(back - field).max() < 0.05 * np.abs(field).max()
+
+
+@pytest.mark.slow
+def test_held_out_patient_with_bases_from_others(tmp_path):
+    """Bases trained on patients 1-3 (through the atlas, patient 0) fit a patient they
+    never saw and recover its E (coarse P2 phantom: the bound is loose, see README)."""
+    import sys
+
+    from conftest import ROOT
+
+    sys.path.insert(0, str(ROOT / "demos"))
+    from prostate_elastography import make_examples, make_target
+
+    from fenics_elasto.reduction import bases_for_patient, train_atlas_bases
+
+    atlas = InverseProblem(load_scene(build_scene("prostate-phantom", tmp_path / "atlas", size=1.6)), target=False)
+    patients = []
+    for seed in (1, 2, 3):
+        source = build_scene("prostate-phantom", tmp_path / f"p{seed}", size=1.6, seed=seed)
+        examples = make_examples(source, tmp_path / f"p{seed}" / "examples", 5, seed=10 + seed, patient=seed)
+        patients.append((InverseProblem(load_scene(source), target=False), examples))
+    bases = train_atlas_bases(atlas, patients, rank=12, say=lambda *_: None)
+    held = build_scene("prostate-phantom", tmp_path / "held", size=1.6, seed=7)
+    target = make_target(tmp_path / "held_target", 50.0, 1.3, patient=7)
+    table = ", ".join(f"{g}='{f}'" for g, f in target.items())
+    problem = InverseProblem(load_scene(held, [f"target={{surfaces={{{table}}}}}"]))
+    before = problem.surface_distance(problem.target.residual(problem.matched_coords))["rms"]
+    result, _, _ = estimate(problem, say=lambda *_: None, basis=bases_for_patient(atlas, bases, problem))
+    print("held-out patient:", result["materials"]["prostate"]["E"], result["surface_distance"], "undeformed", before)
+    assert result["surface_distance"]["rms"] < 0.3 * before  # the organs really moved onto the target
+    assert abs(result["materials"]["prostate"]["E"] - 50.0) / 50.0 < 0.25
