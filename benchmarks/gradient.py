@@ -21,15 +21,7 @@ from fenics_elasto.meshing import build_scene
 from fenics_elasto.objective import InverseProblem
 from fenics_elasto.scene import load_scene
 from fenics_elasto.simulate import simulate
-
-
-def timed(work, repeat=3):
-    times = []
-    for _ in range(repeat):
-        start = time.perf_counter()
-        work()
-        times.append(time.perf_counter() - start)
-    return float(np.median(times))
+from forward import best_of as timed  # benchmarks/ is the script's folder
 
 
 def target_scene(tmp: Path, name: str, size: float, fine: float, settings=()):

@@ -54,11 +54,18 @@ class InverseProblem:
         return self.loaded.total * self.gdim
 
     def matched_groups(self) -> np.ndarray:
-        """Index into scene.matched of each matched node's (first) group, global order."""
-        group = np.full(len(self.matched), -1)
-        for i, name in reversed(list(enumerate(self.scene.matched))):
-            group[np.isin(self.matched.blocks, self.model.boundary_blocks([name], self.scene.match_vertices_only))] = i
-        return self.matched.gather(group)
+        """Index into scene.matched of each matched node's (first) group, canonical order."""
+        return self._groups_of(self.matched, self.scene.matched, self.scene.match_vertices_only)
+
+    def loaded_groups(self) -> np.ndarray:
+        """Index into scene.loaded of each loaded node's (first) group, canonical order."""
+        return self._groups_of(self.loaded, self.scene.loaded)
+
+    def _groups_of(self, nodes, groups, vertices_only=False) -> np.ndarray:
+        group = np.full(len(nodes), -1)
+        for i, name in reversed(list(enumerate(groups))):
+            group[np.isin(nodes.blocks, self.model.boundary_blocks([name], vertices_only))] = i
+        return nodes.gather(group)
 
     # --- parameters
 

@@ -150,18 +150,10 @@ def fit_atlas(atlas: InverseProblem, patient: InverseProblem) -> AtlasFit:
         cells = mesh.lines.reshape(-1, 3)[:, 1:] if scene.gdim == 2 else mesh.faces.reshape(-1, 4)[:, 1:]
         surfaces.append(Surface(pts, cells))
     atlas_points = atlas.loaded.gather(atlas.loaded.coords)
-    atlas_groups = _loaded_groups(atlas)
+    atlas_groups = atlas.loaded_groups()
     target = Target(surfaces, atlas_groups)
     moved = atlas_points + match_surface(atlas_points, atlas_groups, target)
     return AtlasFit(moved, patient.loaded.gather(patient.loaded.coords))
-
-
-def _loaded_groups(problem: InverseProblem) -> np.ndarray:
-    """Index into scene.loaded of each loaded node's (first) group, canonical order."""
-    group = np.full(len(problem.loaded), -1)
-    for i, name in reversed(list(enumerate(problem.scene.loaded))):
-        group[np.isin(problem.loaded.blocks, problem.model.boundary_blocks([name]))] = i
-    return problem.loaded.gather(group)
 
 
 def train_atlas_bases(atlas: InverseProblem, patients, rank: int, say=print) -> Bases:
