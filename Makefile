@@ -32,6 +32,7 @@ test-fast: $(STAMP)
 bench: $(STAMP)
 	$(PY) benchmarks/forward.py
 	$(PY) benchmarks/gradient.py
+	$(PY) benchmarks/reduced.py
 
 # pyflakes; "imported but unused" is expected only for `import fenics_elasto` / `dolfinx_solver`
 # (imported first for its side effect: the wheel's MPI/PETSc order).

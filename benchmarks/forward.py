@@ -26,7 +26,7 @@ from fenics_elasto.scene import load_scene
 from fenics_elasto.simulate import material_values
 
 
-def best_of(repeat, work):
+def best_of(work, repeat=3):
     times = []
     for _ in range(repeat):
         start = time.perf_counter()
@@ -64,22 +64,22 @@ def measure(h, repeat):
     E, nu = material_values(scene)
     clamped = model.clamped_dofs(scene.fixed)
     row = {"h": h, "dofs": model.num_dofs, "material matrices (once)": setup}
-    row["assemble K"] = best_of(repeat, direct_assembly(model, E, nu))
-    row["K by lin. comb."] = best_of(repeat, lambda: model.stiffness(E, nu).destroy())
+    row["assemble K"] = best_of(direct_assembly(model, E, nu), repeat)
+    row["K by lin. comb."] = best_of(lambda: model.stiffness(E, nu).destroy(), repeat)
     K = model.stiffness(E, nu)
     K.zeroRowsColumns(clamped.astype(PETSc.IntType), diag=1.0)
     for kind in ("lu", "cholesky"):
-        row[f"{kind.upper()} factor"] = best_of(repeat, lambda: Factorization(K.copy(), clamped, kind).destroy())
+        row[f"{kind.upper()} factor"] = best_of(lambda: Factorization(K.copy(), clamped, kind).destroy(), repeat)
     factor = Factorization(K, clamped, "lu")
     b, x = K.createVecRight(), K.createVecRight()
     b.setRandom()
-    row["back-solve"] = best_of(repeat, lambda: factor.solve(b, x))
+    row["back-solve"] = best_of(lambda: factor.solve(b, x), repeat)
     n = model.num_dofs
     columns = np.random.default_rng(0).standard_normal((n, 100))  # PETSc borrows this memory
     B = PETSc.Mat().createDense((n, 100), array=columns)
     X = PETSc.Mat().createDense((n, 100))
     X.setUp()
-    row["100 RHS block"] = best_of(repeat, lambda: factor.solve_many(B, X))
+    row["100 RHS block"] = best_of(lambda: factor.solve_many(B, X), repeat)
     row["ratio assemble/lin.comb."] = row["assemble K"] / row["K by lin. comb."]
     return row
 

@@ -104,6 +104,13 @@ def test_train_then_reduced_estimate_from_the_command_line(tmp_path):
     assert result["rank"] == 4 and result["inner_solver"] == "gauss-newton"
     ratio = result["materials"]["inclusion"]["E"] / result["materials"]["matrix"]["E"]
     assert abs(ratio - 4.0) / 4.0 < 0.03, ratio
+    # The same bases (trained serially) under 2 MPI ranks: canonical node order.
+    proc = run_cli("estimate", source, "--out", tmp_path / "result2", "--set", f"target.surfaces={{{targets}}}",
+                   "--set", f"reduction={{bases='{tmp_path / 'bases.npz'}', rank=4}}", mpi=2)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    parallel = json.loads((tmp_path / "result2" / "result.json").read_text())
+    assert parallel["mpi_ranks"] == 2
+    assert abs(parallel["materials"]["inclusion"]["E"] - result["materials"]["inclusion"]["E"]) < 1e-4 * ratio * 10
 
 
 def test_atlas_fit_carries_fields_between_patients(tmp_path):
