@@ -110,7 +110,7 @@ def main():
         print(f"3. target with prostate E = {E:g} kPa (fine mesh h = {fine})", flush=True)
         target = targets[E] = make_target(out, E, fine)
         reduced, _, _ = run_case(source, target, bases.W)
-        full, _, _ = run_case(source, target, options=Options(inner_maxiter=15))
+        full, _, _ = run_case(source, target, options=Options(inner_maxiter=15, outer_maxiter=4))
         rows.append((E, reduced, full))
         for name, r in (("reduced", reduced), ("full", full)):
             print(f"   {name:7s} E = {r['materials']['prostate']['E']:.2f}  ({r['seconds']:.1f} s, "

@@ -17,10 +17,13 @@ from pathlib import Path
 
 import numpy as np
 
+from scipy.spatial import cKDTree
+
 from fenics_elasto.errors import UserError, require
+from fenics_elasto.io import surface as facet_surface
 from fenics_elasto.matching import match_surface
 from fenics_elasto.objective import InverseProblem
-from fenics_elasto.surface import Target, read_surface
+from fenics_elasto.surface import Surface, Target, read_surface
 
 
 @dataclass
@@ -98,8 +101,6 @@ def load_bases(path: Path, problem: InverseProblem, rank: int | None) -> Bases:
 def interpolate_nodes(values: np.ndarray, source: np.ndarray, points: np.ndarray, k: int = 4) -> np.ndarray:
     """Per-node rows (n_source, ...) carried to ``points`` by inverse-distance weights of
     the k nearest source nodes (exact where a point coincides with a node)."""
-    from scipy.spatial import cKDTree
-
     dist, idx = cKDTree(source).query(points, k)
     weights = 1.0 / np.maximum(dist, 1e-12) ** 2
     weights /= weights.sum(axis=1, keepdims=True)
@@ -135,16 +136,12 @@ def _carry(field: np.ndarray, source: np.ndarray, points: np.ndarray) -> np.ndar
 def fit_atlas(atlas: InverseProblem, patient: InverseProblem) -> AtlasFit:
     """Surface-match the atlas's loaded nodes onto the patient's loaded surfaces."""
     scene = patient.scene
-    groups = [g for g in scene.loaded]
-    require(groups == list(atlas.scene.loaded), "atlas and patient must name the same loaded groups")
-    # The patient's own (undeformed) loaded surfaces, one per group, as the target.
-    from fenics_elasto.io import surface
-    from fenics_elasto.surface import Surface
-
+    require(scene.loaded == atlas.scene.loaded, "atlas and patient must name the same loaded groups")
+    # The patient's own (undeformed) loaded surfaces, one per group, are the target.
     zero = patient.model.function("zero")
     surfaces = []
-    for g in groups:
-        mesh = surface(zero, scene.facet_groups[g], deformed=False)
+    for g in scene.loaded:
+        mesh = facet_surface(zero, scene.facet_groups[g], deformed=False)
         mesh = scene.comm.bcast(mesh, root=0)
         pts = np.asarray(mesh.points)[:, : scene.gdim]
         cells = mesh.lines.reshape(-1, 3)[:, 1:] if scene.gdim == 2 else mesh.faces.reshape(-1, 4)[:, 1:]
