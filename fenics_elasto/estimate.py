@@ -322,16 +322,25 @@ def run_estimate(problem_path: Path, out: Path, overrides=()) -> dict:
     say(f"estimate {', '.join(f'{m}.{k}' for m, k in problem.estimated)}: {problem.model.num_dofs} dofs, "
         f"{problem.force_dofs} force dofs" + (f" reduced to rank {basis.shape[1]}" if basis is not None else "")
         + f", {problem.matched.total} matched nodes")
-    result, u, _ = estimate(problem, say=say, basis=basis)
+    result, u, forces = estimate(problem, say=say, basis=basis)
     target = target_polydata(problem) if scene.comm.rank == 0 else None
     out = Path(out)
     write_solution(out, scene, u, result, target=target, title=_title(result))
+    points = problem.loaded.gather(problem.loaded.coords)
     if scene.comm.rank == 0:
         target.save(out / "target.vtp")
         plot_convergence(result, out / "convergence.png")
+        write_forces(out / "forces.csv", points, forces.reshape(len(points), -1))
     say(f"{_title(result)}; rms distance {result['surface_distance']['rms']:.3g}, "
         f"{result['factorizations']} factorizations, {result['wall_time_s']:.1f} s -> {out}")
     return result
+
+
+def write_forces(path: Path, points: np.ndarray, forces: np.ndarray) -> None:
+    """The recovered nodal forces: one row per loaded node, position then force."""
+    dim = points.shape[1]
+    header = ",".join([f"x{i}" for i in range(dim)] + [f"f{i}" for i in range(dim)])
+    np.savetxt(path, np.c_[points, forces], delimiter=",", header=header, comments="")
 
 
 def reduced_basis(problem: InverseProblem) -> np.ndarray | None:

@@ -91,6 +91,11 @@ def test_estimate_cli_outputs_and_two_ranks(letter_source, tmp_path):
     out = tmp_path / "ranks1"
     for name in ("screenshot.png", "convergence.png"):
         assert_picture(out / name)
+    forces = np.loadtxt(out / "forces.csv", delimiter=",", skiprows=1)
+    assert forces.shape == (serial["force_dofs"] // 2, 4)
+    assert np.all(forces[:, 1] > 9.99)  # the loaded nodes are the letter's top
+    # The forces hold the top down and sideways (the target moved it by (+x, -y)).
+    assert forces[:, 2].sum() > 0 and forces[:, 3].sum() < 0
     assert (out / "surface.vtp").exists() and (out / "displacement.bp").exists()
 
 
