@@ -164,13 +164,12 @@ def plot_rank_sweep(sweep, path: Path) -> None:
 
 def render_bases(problem: InverseProblem, W: np.ndarray, path: Path) -> None:
     """Arrows of the first two bases on the loaded nodes (bladder and rectum)."""
-    import os
-
-    os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
     import pyvista as pv
 
+    from fenics_elasto.render import offscreen_plotter
+
     points = problem.loaded.gather(problem.loaded.coords)
-    plotter = pv.Plotter(off_screen=True, shape=(1, 2), window_size=(1600, 800))
+    plotter = offscreen_plotter(shape=(1, 2), window_size=(1600, 800))
     for k in range(min(2, W.shape[1])):
         plotter.subplot(0, k)
         cloud = pv.PolyData(points)

@@ -57,6 +57,11 @@ def epsilon(u):
 # --------------------------------------------------------------------------- node sets
 
 
+def unrolled(blocks: np.ndarray, bs: int) -> np.ndarray:
+    """(n, bs) unrolled DOF indices of blocks (nodes) of a vector space."""
+    return blocks[:, None] * bs + np.arange(bs)
+
+
 @dataclass
 class NodeSet:
     """Owned nodes (blocks of the vector space) of a boundary, numbered across ranks.
@@ -90,7 +95,7 @@ class NodeSet:
 
     def dofs(self, bs: int) -> np.ndarray:
         """(n, bs) local unrolled DOF indices."""
-        return self.blocks[:, None] * bs + np.arange(bs)
+        return unrolled(self.blocks, bs)
 
     def gather(self, values: np.ndarray) -> np.ndarray:
         """Per-node rows of every rank, in canonical order, on every rank."""
@@ -153,7 +158,7 @@ class ElasticModel:
 
     def clamped_dofs(self, groups) -> np.ndarray:
         """Owned local unrolled DOFs of the nodes on the groups."""
-        return (self.boundary_blocks(groups)[:, None] * self.bs + np.arange(self.bs)).ravel()
+        return unrolled(self.boundary_blocks(groups), self.bs).ravel()
 
     # --- matrices
 

@@ -218,8 +218,7 @@ class NestedEstimator:
         controls0 = self.initial_controls(theta0, d0)
         self.anchor = controls0 if self.inner == "gauss-newton" else None
         self.control_scale = max(float(np.sqrt(np.mean(controls0**2))), 1e-300)
-        self.phi_scale = max(self.evaluate(theta0, self.boundary(controls0) if self.inner == "gauss-newton"
-                                           else controls0).phi, 1e-300)
+        self.phi_scale = max(self.evaluate(theta0, self.boundary(controls0)).phi, 1e-300)
         candidates = [theta0] + self.scan_points()
         self.say(f"scan of {len(candidates)} material values (start: surface matching; inner: {self.inner})")
         for theta in candidates:
@@ -311,7 +310,7 @@ def estimate(problem: InverseProblem, options: Options | None = None, say=print,
 
 def run_estimate(problem_path: Path, out: Path, overrides=()) -> dict:
     """The ``estimate`` command: load, estimate, write result.json, pictures and fields."""
-    from fenics_elasto.io import write_solution
+    from fenics_elasto.io import write_point_csv, write_solution
     from fenics_elasto.render import plot_convergence, target_polydata
     from fenics_elasto.scene import load_scene
 
@@ -330,17 +329,10 @@ def run_estimate(problem_path: Path, out: Path, overrides=()) -> dict:
     if scene.comm.rank == 0:
         target.save(out / "target.vtp")
         plot_convergence(result, out / "convergence.png")
-        write_forces(out / "forces.csv", points, forces.reshape(len(points), -1))
+        write_point_csv(out / "forces.csv", points, forces.reshape(len(points), -1), "f")
     say(f"{_title(result)}; rms distance {result['surface_distance']['rms']:.3g}, "
         f"{result['factorizations']} factorizations, {result['wall_time_s']:.1f} s -> {out}")
     return result
-
-
-def write_forces(path: Path, points: np.ndarray, forces: np.ndarray) -> None:
-    """The recovered nodal forces: one row per loaded node, position then force."""
-    dim = points.shape[1]
-    header = ",".join([f"x{i}" for i in range(dim)] + [f"f{i}" for i in range(dim)])
-    np.savetxt(path, np.c_[points, forces], delimiter=",", header=header, comments="")
 
 
 def reduced_basis(problem: InverseProblem) -> np.ndarray | None:

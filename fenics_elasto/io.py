@@ -86,6 +86,18 @@ def write_displacement(u: fem.Function, out: Path) -> Path:
     return path
 
 
+def write_point_csv(path: Path, points: np.ndarray, vectors: np.ndarray, prefix: str) -> None:
+    """Rows ``point, vector``; header x0.. then <prefix>0.. (landmarks: X, forces: f)."""
+    dim = points.shape[1]
+    header = ",".join([f"x{i}" for i in range(dim)] + [f"{prefix}{i}" for i in range(vectors.shape[1])])
+    np.savetxt(path, np.c_[points, vectors], delimiter=",", header=header, comments="")
+
+
+def write_landmarks(path: Path, points: np.ndarray, displaced: np.ndarray) -> None:
+    """CSV of ``source point, target point`` rows (the [target] landmarks format)."""
+    write_point_csv(path, points, displaced, "X")
+
+
 def write_json(data: dict, path: Path, comm=MPI.COMM_WORLD) -> None:
     if comm.rank == 0:
         path.write_text(json.dumps(data, indent=2, default=_json_default) + "\n")

@@ -9,7 +9,8 @@ import numpy as np
 GROUP_COLOURS = ["#e6550d", "#3182bd", "#31a354", "#756bb1", "#d6616b", "#8c6d31"]
 
 
-def _plotter():
+def offscreen_plotter(**options):
+    """A pyvista plotter that renders off-screen (default: one 1400 x 1000 view)."""
     import os
 
     # Straight to the off-screen (EGL/OSMesa) window: no failed X connection first.
@@ -17,7 +18,7 @@ def _plotter():
     import pyvista as pv
 
     pv.OFF_SCREEN = True
-    return pv.Plotter(off_screen=True, window_size=(1400, 1000))
+    return pv.Plotter(off_screen=True, **{"window_size": (1400, 1000), **options})
 
 
 def render(
@@ -30,7 +31,7 @@ def render(
     dim: int = 3,
 ) -> Path:
     """Write a PNG: each group deformed and coloured by |u| over its undeformed outline."""
-    plotter = _plotter()
+    plotter = offscreen_plotter()
     bar = {"title": "|u|", "vertical": True, "position_x": 0.88, "position_y": 0.2}
     clim = _shared_range([context] if dim == 2 and context is not None else list(groups.values()))
     if context is not None:

@@ -85,10 +85,9 @@ def probe(u: fem.Function, points: np.ndarray) -> np.ndarray:
     cells = geo.compute_closest_entity(tree, midpoints, mesh, pts)
     found = cells >= 0
     distance = np.full(len(pts), np.inf)
-    if found.any():
-        distance[found] = np.sqrt(geo.squared_distance(mesh, tdim, cells[found], pts[found]))
     values = np.zeros((len(pts), gdim))
     if found.any():
+        distance[found] = np.sqrt(geo.squared_distance(mesh, tdim, cells[found], pts[found]))
         values[found] = u.eval(pts[found], cells[found])
     # Each point from the rank whose cell is closest.
     best = mesh.comm.allreduce(distance, op=MPI.MIN)
@@ -97,9 +96,3 @@ def probe(u: fem.Function, points: np.ndarray) -> np.ndarray:
     values[claim != mesh.comm.rank] = 0.0
     return mesh.comm.allreduce(values, op=MPI.SUM)
 
-
-def write_landmarks(path, points: np.ndarray, displaced: np.ndarray) -> None:
-    """CSV of ``source point, target point`` rows (the [target] landmarks format)."""
-    dim = points.shape[1]
-    header = ",".join([f"x{i}" for i in range(dim)] + [f"X{i}" for i in range(dim)])
-    np.savetxt(path, np.c_[points, displaced], delimiter=",", header=header, comments="")

@@ -5,10 +5,10 @@ from pathlib import Path
 import numpy as np
 
 from fenics_elasto.elasticity import ElasticModel
-from fenics_elasto.io import write_matched_surfaces
+from fenics_elasto.io import write_landmarks, write_matched_surfaces
 from fenics_elasto.meshing import build_scene
 from fenics_elasto.scene import load_scene
-from fenics_elasto.simulate import probe, simulate, write_landmarks
+from fenics_elasto.simulate import probe, simulate
 
 
 def fine_simulation(name: str, folder: Path, size: float, settings=()):
@@ -18,6 +18,12 @@ def fine_simulation(name: str, folder: Path, size: float, settings=()):
     sim = simulate(scene)
     write_matched_surfaces(folder / "target", scene, sim.u)
     return scene, sim
+
+
+def letter_case(base: Path, fine_size: float, nu: float):
+    """A letter-A source (h = 0.4) and its outline target simulated at nu on a finer mesh."""
+    fine_simulation("letter-a", base / "fine", fine_size, [f"materials.letter.nu={nu}"])
+    return build_scene("letter-a", base / "source"), base / "fine" / "target" / "surface.vtp"
 
 
 def landmarks_for(source_problem: Path, sim, path: Path, noise: float = 0.0, seed: int = 0) -> Path:

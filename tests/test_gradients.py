@@ -8,7 +8,7 @@ import pytest
 from fenics_elasto.meshing import build_scene
 from fenics_elasto.objective import InverseProblem
 from fenics_elasto.scene import load_scene
-from targets import fine_simulation, landmarks_for
+from targets import fine_simulation, landmarks_for, letter_case
 
 
 def taylor_rates(phi, x, direction, gradient, eps0):
@@ -38,10 +38,7 @@ def check(problem, theta, controls, coordinates, rng, eps_controls, eps_theta):
 
 @pytest.fixture(scope="module")
 def letter(tmp_path_factory):
-    base = tmp_path_factory.mktemp("letter")
-    fine_simulation("letter-a", base / "fine", 0.3, ["materials.letter.nu=0.25"])
-    source = build_scene("letter-a", base / "source")
-    return source, base / "fine" / "target" / "surface.vtp"
+    return letter_case(tmp_path_factory.mktemp("letter"), 0.3, 0.25)
 
 
 @pytest.mark.parametrize("coordinates", ["forces", "displacement"])

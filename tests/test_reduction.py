@@ -13,7 +13,7 @@ from fenics_elasto.meshing import build_scene
 from fenics_elasto.objective import InverseProblem
 from fenics_elasto.reduction import load_bases, pca, train_bases
 from fenics_elasto.scene import load_scene
-from targets import fine_simulation
+from targets import fine_simulation, letter_case
 from test_gradients import taylor_rates
 
 
@@ -30,10 +30,7 @@ def test_pca_recovers_a_known_low_rank_set():
 
 @pytest.fixture(scope="module")
 def letter(tmp_path_factory):
-    base = tmp_path_factory.mktemp("reduction")
-    fine_simulation("letter-a", base / "fine", 0.25, ["materials.letter.nu=0.35"])
-    source = build_scene("letter-a", base / "source")
-    return source, base / "fine" / "target" / "surface.vtp"
+    return letter_case(tmp_path_factory.mktemp("reduction"), 0.25, 0.35)
 
 
 def test_reduced_equals_full_when_the_bases_span_the_answer(letter):
