@@ -6,6 +6,8 @@ Everything a user can get wrong is checked here, once, with a one-line message.
 
 from __future__ import annotations
 
+import copy
+
 import math
 import tomllib
 from dataclasses import dataclass, field
@@ -176,7 +178,7 @@ def fresh_gmsh_model(name: str):
     return gmsh
 
 
-def _gmsh_facet_groups(gmsh, tdim: int) -> dict[str, np.ndarray]:
+def gmsh_facet_groups(gmsh, tdim: int) -> dict[str, np.ndarray]:
     """Every facet physical group's facets as rows of 0-based input node indices."""
     groups = {}
     for dim, tag in gmsh.model.getPhysicalGroups(tdim - 1):
@@ -218,7 +220,7 @@ def read_msh(path: Path, comm=MPI.COMM_WORLD):
         require(tdim == 3 or np.allclose(coords[:, 2], 0), f"{path}: a 2D mesh must lie in the z = 0 plane")
         cell_groups = [t for d, t in groups if d == tdim]
         require(cell_groups, f"{path}: no cell (region) physical groups")
-        return tdim, _gmsh_facet_groups(gmsh, tdim)
+        return tdim, gmsh_facet_groups(gmsh, tdim)
 
     try:
         tdim, facet_rows = _on_root(comm, open_model) or (None, None)
@@ -298,7 +300,22 @@ def load_scene(problem, overrides=(), comm=MPI.COMM_WORLD) -> Scene:
     apply_overrides(config, overrides)
 
     require("mesh" in config, f"{path}: missing key 'mesh'")
-    mesh, cell_tags, cell_groups, facet_groups = read_msh(path.parent / config["mesh"], comm)
+    return _configure(path, config, *read_msh(path.parent / config["mesh"], comm))
+
+
+def reconfigure(scene: Scene, overrides) -> Scene:
+    """The scene with more ``--set`` overrides, on the same mesh (not read again):
+    many simulations of one mesh share one ElasticModel."""
+    config = copy.deepcopy(scene.config)
+    apply_overrides(config, overrides)
+    require(config["mesh"] == scene.config["mesh"], f"{scene.path}: reconfigure keeps the mesh; load the other one")
+    cell_groups = {m.name: m.tag for m in scene.materials}
+    return _configure(scene.path, config, scene.mesh, scene.cell_tags, cell_groups, scene.facet_groups)
+
+
+def _configure(path: Path, config: dict, mesh, cell_tags, cell_groups: dict, facet_groups: dict) -> Scene:
+    """Check the TOML settings against the mesh's groups and build the Scene."""
+    comm = mesh.comm
     gdim = mesh.geometry.dim
 
     plane = config.get("plane", "strain")

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 from mpi4py import MPI
@@ -17,6 +18,7 @@ from dolfinx import fem
 
 from fenics_elasto.elasticity import ElasticModel
 from fenics_elasto.errors import require
+from fenics_elasto.io import write_landmarks
 from fenics_elasto.scene import Scene
 
 
@@ -96,3 +98,15 @@ def probe(u: fem.Function, points: np.ndarray) -> np.ndarray:
     values[claim != mesh.comm.rank] = 0.0
     return mesh.comm.allreduce(values, op=MPI.SUM)
 
+
+
+def write_landmarks_for(scene: Scene, u: fem.Function, path: Path, noise: float = 0.0, seed: int = 0) -> Path:
+    """A landmark target (exact node correspondence): ``u``, from any mesh, probed at
+    the scene's matched nodes, plus optional Gaussian noise of std ``noise``."""
+    nodes = ElasticModel(scene).node_set(scene.matched)
+    points = nodes.gather(nodes.coords)
+    moved = points + probe(u, points)
+    moved += noise * np.random.default_rng(seed).standard_normal(moved.shape)
+    if scene.comm.rank == 0:
+        write_landmarks(path, points, moved)
+    return path

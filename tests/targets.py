@@ -2,13 +2,10 @@
 
 from pathlib import Path
 
-import numpy as np
-
-from fenics_elasto.elasticity import ElasticModel
-from fenics_elasto.io import write_landmarks, write_matched_surfaces
+from fenics_elasto.io import write_matched_surfaces
 from fenics_elasto.meshing import build_scene
 from fenics_elasto.scene import load_scene
-from fenics_elasto.simulate import probe, simulate
+from fenics_elasto.simulate import simulate, write_landmarks_for
 
 
 def fine_simulation(name: str, folder: Path, size: float, settings=()):
@@ -28,10 +25,4 @@ def letter_case(base: Path, fine_size: float, nu: float):
 
 def landmarks_for(source_problem: Path, sim, path: Path, noise: float = 0.0, seed: int = 0) -> Path:
     """Exact node correspondence: the fine solution probed at the source's matched nodes."""
-    source = load_scene(source_problem)
-    nodes = ElasticModel(source).node_set(source.matched)
-    points = nodes.gather(nodes.coords)
-    moved = points + probe(sim.u, points)
-    moved += noise * np.random.default_rng(seed).standard_normal(moved.shape)
-    write_landmarks(path, points, moved)
-    return path
+    return write_landmarks_for(load_scene(source_problem), sim.u, path, noise, seed)
