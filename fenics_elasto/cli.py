@@ -8,7 +8,7 @@ from pathlib import Path
 
 from mpi4py import MPI
 
-from fenics_elasto.errors import UserError
+from fenics_elasto.errors import UserError, require
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -20,6 +20,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, type=Path)
     p.add_argument("--size", type=float, default=None, help="element size (scene units)")
     p.add_argument("--seed", type=int, default=0, help="phantom patient variation (0 = nominal)")
+    p.add_argument("--atlas", type=Path, default=None,
+                   help="phantom: mesh around this mesh's bladder and rectum (shared loaded nodes)")
 
     for name, text in (("simulate", "forward solve with prescribed loads/displacements"),
                        ("estimate", "estimate materials and boundary forces from a target")):
@@ -43,11 +45,13 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _mesh(args) -> None:
-    from fenics_elasto.meshing import build_scene
+    from fenics_elasto.meshing import atlas_surfaces, build_scene
 
     path = None
     if MPI.COMM_WORLD.rank == 0:
-        path = build_scene(args.name, args.out, args.size, args.seed)
+        require(args.atlas is None or args.name == "prostate-phantom", "--atlas: only prostate-phantom takes an atlas")
+        atlas = atlas_surfaces(args.atlas) if args.atlas else None
+        path = build_scene(args.name, args.out, args.size, args.seed, atlas)
     path = MPI.COMM_WORLD.bcast(path, root=0)
     _say(f"wrote {path}")
 

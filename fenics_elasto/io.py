@@ -16,34 +16,78 @@ import dolfinx
 from dolfinx import fem
 
 
-def vertex_blocks(V: fem.FunctionSpace) -> np.ndarray:
-    """Map geometry node -> block (node) of V at the same vertex.
+def node_blocks(V: fem.FunctionSpace) -> np.ndarray:
+    """Map geometry node -> block (node) of V at the same point (-1 where V has none).
 
-    For Lagrange spaces the first DOFs of each cell sit on its vertices, in the same
-    local order as the (affine) geometry's nodes.
+    Lagrange DOFs and geometry nodes share one local layout (vertices first, then
+    edges): all nodes match when V has the geometry's degree, the vertices otherwise.
     """
     mesh = V.mesh
-    geom = mesh.geometry.dofmaps[0]
-    nverts = geom.shape[1]
+    geom, dofs = mesh.geometry.dofmaps[0], V.dofmap.list
+    shared = geom.shape[1] if geom.shape[1] == dofs.shape[1] else dolfinx.cpp.mesh.cell_num_vertices(mesh.topology.cell_type)
     out = np.full(mesh.geometry.x.shape[0], -1, np.int64)
-    out[geom.ravel()] = V.dofmap.list[:, :nverts].ravel()
+    out[geom[:, :shared].ravel()] = dofs[:, :shared].ravel()
     return out
 
 
-def gather_entities(u: fem.Function, dim: int, entities: np.ndarray):
+def _quadratic_order(nodes: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """6-node triangles (vertices first) reordered to v0, v1, v2, e01, e12, e20.
+
+    Which edge each midpoint node sits on is read from the positions (the nearest
+    straight midpoint), not assumed from a node ordering.
+    """
+    corners = x[nodes[:, :3]]
+    straight = corners[:, [[0, 1], [1, 2], [2, 0]]].mean(axis=2)  # (n, edge, gdim)
+    gap = np.linalg.norm(x[nodes[:, 3:]][:, :, None] - straight[:, None], axis=3)  # (n, node, edge)
+    ordered = nodes.copy()
+    ordered[np.arange(len(nodes))[:, None], 3 + gap.argmin(axis=2)] = nodes[:, 3:]
+    return ordered
+
+
+def _pieces(dim: int, level: int) -> np.ndarray:
+    """Quadratic Lagrange shape functions (rows) at the corners of the ``level``-fold
+    subdivision of a line (nodes v0, v1, m) or triangle (v0, v1, v2, e01, e12, e20)."""
+    if dim == 1:
+        t = np.arange(level + 1) / level
+        lam = np.stack([np.c_[1 - t[:-1], t[:-1]], np.c_[1 - t[1:], t[1:]]], axis=1).reshape(-1, 2)
+        l0, l1 = lam.T
+        return np.c_[l0 * (2 * l0 - 1), l1 * (2 * l1 - 1), 4 * l0 * l1]
+    corners = []
+    for i in range(level):
+        for j in range(level - i):
+            corners += [(i, j), (i + 1, j), (i, j + 1)]
+            if i + j < level - 1:
+                corners += [(i + 1, j), (i + 1, j + 1), (i, j + 1)]
+    l1, l2 = np.array(corners, float).T / level
+    l0 = 1 - l1 - l2
+    return np.c_[l0 * (2 * l0 - 1), l1 * (2 * l1 - 1), l2 * (2 * l2 - 1), 4 * l0 * l1, 4 * l1 * l2, 4 * l2 * l0]
+
+
+def gather_entities(u: fem.Function, dim: int, entities: np.ndarray, level: int = 4):
     """(points, connectivity, displacement) of owned entities, gathered on rank 0.
 
-    Points are duplicated per entity; ``pyvista``'s ``clean`` merges them.
+    Cells come as their vertices. Quadratic facets of a curved (P2-geometry) mesh
+    with a P2 displacement come as ``level``^(dim) flat pieces of the curved deformed
+    facet: a flat facet would cut inside a curved organ by its sag (~0.02 cm on the
+    phantom), a fake displacement to a surface target. Points are duplicated per
+    piece; ``pyvista``'s ``clean`` merges them.
     """
     mesh = u.function_space.mesh
     gdim = mesh.geometry.dim
     mesh.topology.create_connectivity(dim, mesh.topology.dim)
     owned = entities[entities < mesh.topology.index_map(dim).size_local]
-    nodes = dolfinx.mesh.entities_to_geometry(mesh, dim, owned.astype(np.int32))
-    width = nodes.shape[1] if nodes.ndim == 2 else dim + 1
-    nodes = nodes.reshape(-1, width)
-    points = mesh.geometry.x[nodes.ravel()]
-    disp = u.x.array.reshape(-1, gdim)[vertex_blocks(u.function_space)[nodes.ravel()]]
+    nodes = dolfinx.mesh.entities_to_geometry(mesh, dim, owned.astype(np.int32)).reshape(len(owned), -1)
+    blocks = node_blocks(u.function_space)
+    x, values = mesh.geometry.x[:, :gdim], u.x.array.reshape(-1, gdim)
+    width = dim + 1
+    if dim < mesh.topology.dim and nodes.shape[1] > width and (blocks[nodes] >= 0).all():
+        nodes = _quadratic_order(nodes, x) if dim == 2 else nodes
+        shape = _pieces(dim, level)
+        points = np.einsum("ak,nkd->nad", shape, x[nodes]).reshape(-1, gdim)
+        disp = np.einsum("ak,nkd->nad", shape, values[blocks[nodes]]).reshape(-1, gdim)
+    else:  # cells, flat facets, or nodes that V has no DOF on: the corners
+        nodes = nodes[:, :width].ravel()
+        points, disp = x[nodes], values[blocks[nodes]]
     points = mesh.comm.gather(points, root=0)
     disp = mesh.comm.gather(disp, root=0)
     if mesh.comm.rank != 0:
@@ -52,7 +96,9 @@ def gather_entities(u: fem.Function, dim: int, entities: np.ndarray):
     cells = np.arange(len(points)).reshape(-1, width)
     pad = np.zeros((len(disp), 3))
     pad[:, :gdim] = disp
-    return points, cells, pad
+    xyz = np.zeros((len(points), 3))
+    xyz[:, :gdim] = points
+    return xyz, cells, pad
 
 
 def polydata(points, cells, displacement, deformed: bool = True):

@@ -9,12 +9,16 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from fenics_elasto.errors import UserError, require
-from fenics_elasto.scene import fresh_gmsh_model
+from fenics_elasto.matching import fit_surfaces
+from fenics_elasto.scene import fresh_gmsh_model, gmsh_facet_groups
+from fenics_elasto.surface import quadratic_edges
 
 GEO_DIR = Path(__file__).parent / "meshes"
 SCENES = ("letter-a", "cantilever", "inclusion", "prostate-phantom")
+PHANTOM_LOADED = ("bladder", "rectum")  # the phantom's loaded groups (see PHANTOM_TOML)
 
 
 class GmshModel:
@@ -33,15 +37,123 @@ class GmshModel:
         gmsh.clear()
 
 
-def _write_msh(gmsh, path: Path, dim: int) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
+def _generate(gmsh, path: Path, dim: int) -> None:
     try:
         gmsh.model.mesh.generate(dim)
     except Exception as err:  # gmsh raises a bare Exception with its last error
         raise UserError(f"gmsh could not mesh {path.name} at this size ({err}); try another --size") from None
+
+
+def _write_msh(gmsh, path: Path, dim: int) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    _generate(gmsh, path, dim)
     gmsh.option.setNumber("Mesh.MshFileVersion", 4.1)
     gmsh.option.setNumber("Mesh.SaveAll", 0)
     gmsh.write(str(path))
+
+
+def physical_surfaces(gmsh) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Every facet group of the current 3D gmsh mesh as (points, triangles), the
+    points numbered per group in node-tag order."""
+    tags, coords, _ = gmsh.model.mesh.getNodes()
+    position = np.zeros((int(tags.max()) + 1, 3))
+    position[tags] = coords.reshape(-1, 3)
+    surfaces = {}
+    for name, rows in gmsh_facet_groups(gmsh, 3).items():
+        used, local = np.unique(rows + 1, return_inverse=True)
+        surfaces[name] = (position[used], local.reshape(rows.shape))
+    return surfaces
+
+
+def read_surfaces(msh: Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """The facet groups of a 3D .msh file as (points, triangles)."""
+    require(Path(msh).is_file(), f"{msh}: no such mesh file")
+    with GmshModel("surfaces") as gmsh:
+        gmsh.merge(str(msh))
+        return physical_surfaces(gmsh)
+
+
+def atlas_surfaces(msh: Path, groups=PHANTOM_LOADED) -> dict:
+    """An atlas for ``build_prostate_phantom(atlas=...)``: a mesh's loaded surfaces."""
+    surfaces = read_surfaces(msh)
+    missing = [g for g in groups if g not in surfaces]
+    require(not missing, f"{msh}: no facet group(s) {', '.join(missing)} to serve as the atlas")
+    return {g: surfaces[g] for g in groups}
+
+
+def _onto_geometry(gmsh, faces: list[int], points: np.ndarray) -> np.ndarray:
+    """Each point moved to the closest point of the CAD faces (not of their mesh, whose
+    facets cut inside curved organs: a node there would be a fake displacement)."""
+    candidates = np.stack([np.reshape(gmsh.model.getClosestPoint(2, f, points.ravel())[0], (-1, 3)) for f in faces])
+    nearest = np.argmin(np.linalg.norm(candidates - points, axis=2), axis=0)
+    return candidates[nearest, np.arange(len(points))]
+
+
+def _mesh_inside(gmsh, surfaces: dict, volumes: dict, path: Path) -> None:
+    """Tetrahedralise the volumes bounded by given triangulated surfaces, keeping those
+    triangles -- vertices, and the midpoint nodes of 6-node triangles -- exactly: a
+    new model of discrete surfaces, meshed inside, then made quadratic.
+
+    ``volumes``: name -> the surface groups bounding it (outer and inner shells).
+    The vertices get consecutive node tags in the order of each group's points.
+    """
+    gmsh.model.add("around-surfaces")
+    first, corners, edge_keys, edge_points = 1, [], [], []
+    for tag, (name, (points, triangles)) in enumerate(surfaces.items(), 1):
+        vertices = np.unique(triangles[:, :3])
+        node_tag = np.zeros(len(points), np.int64)
+        node_tag[vertices] = np.arange(first, first + len(vertices))
+        gmsh.model.addDiscreteEntity(2, tag)
+        gmsh.model.mesh.addNodes(2, tag, node_tag[vertices], points[vertices].ravel())
+        gmsh.model.mesh.addElementsByType(tag, 2, [], node_tag[triangles[:, :3]].ravel())
+        gmsh.model.addPhysicalGroup(2, [tag], name=name)
+        corners.append(points[vertices])
+        if triangles.shape[1] == 6:
+            pairs, middle = quadratic_edges(triangles)
+            edge_keys.append(_edge_key(node_tag[pairs] - 1))
+            edge_points.append(points[middle])
+        first += len(vertices)
+    tag_of = {name: tag for tag, name in enumerate(surfaces, 1)}
+    volume = {name: gmsh.model.geo.addVolume([gmsh.model.geo.addSurfaceLoop([tag_of[s] for s in shells])])
+              for name, shells in volumes.items()}
+    gmsh.model.geo.synchronize()
+    for name, tag in volume.items():
+        gmsh.model.addPhysicalGroup(3, [tag], name=name)
+    # The surfaces carry the sizes; the volume grades between them.
+    gmsh.option.setNumber("Mesh.MeshSizeExtendFromBoundary", 1)
+    gmsh.option.setNumber("Mesh.ElementOrder", 1)
+    _generate(gmsh, path, 3)
+    if edge_keys:
+        _curve_surfaces(gmsh, np.concatenate(corners), np.concatenate(edge_keys), np.concatenate(edge_points))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    gmsh.write(str(path))
+
+
+def _edge_key(pairs: np.ndarray) -> np.ndarray:
+    """One integer per edge of (sorted) node-tag pairs."""
+    return pairs[:, 0] * (1 << 31) + pairs[:, 1]
+
+
+def _curve_surfaces(gmsh, corners: np.ndarray, keys: np.ndarray, midpoints: np.ndarray) -> None:
+    """Quadratic elements whose surface edges (``keys`` of pairs of rows of ``corners``)
+    have the given midpoint nodes. setOrder renumbers nodes, so corners are found by
+    position."""
+    gmsh.option.setNumber("Mesh.SecondOrderLinear", 1)  # straight first; the surface ones are moved below
+    gmsh.model.mesh.setOrder(2)
+    keys, first = np.unique(keys, return_index=True)
+    midpoints = midpoints[first]
+    tags, coords, _ = gmsh.model.mesh.getNodes()
+    position = np.zeros((int(tags.max()) + 1, 3))
+    position[tags] = coords.reshape(-1, 3)
+    tree = cKDTree(corners)
+    for _, tag in gmsh.model.getEntities(2):
+        nodes = gmsh.model.mesh.getElementsByType(9, tag)[1].reshape(-1, 6).astype(np.int64)
+        gap, corner = tree.query(position[nodes[:, :3]])
+        pairs, middle = quadratic_edges(np.c_[corner, nodes[:, 3:]])
+        at = np.searchsorted(keys, _edge_key(pairs))
+        found = (keys[np.minimum(at, len(keys) - 1)] == _edge_key(pairs)) & np.repeat(gap.max(axis=1) < 1e-9, 3)
+        for node, point in zip(middle[found], midpoints[at[found]]):
+            gmsh.model.mesh.setNode(int(node), point, [])
 
 
 def _mesh_geo(geo: str, path: Path, dim: int, numbers: dict) -> None:
@@ -137,6 +249,10 @@ nu = 0.4
 E  = 10.0             # the reference: with unknown forces only E ratios are identifiable
 nu = 0.4
 
+# Phi*(E) is smooth and single-welled in log E here: three scan points start it well.
+[optimizer]
+scan = 3
+
 [boundary]
 fixed   = ["bones"]
 loaded  = ["bladder", "rectum"]
@@ -193,11 +309,35 @@ def phantom_organs(seed: int) -> dict:
     return organs
 
 
+PROSTATE_SIZE = 0.22  # element size at the prostate, relative to --size
+
+
+def _graded_size(field, faces: list[int], size_min: float, size_max: float) -> int:
+    """A gmsh size field: size_min within 0.3 cm of the faces, growing to size_max at 4 cm."""
+    dist = field.add("Distance")
+    field.setNumbers(dist, "SurfacesList", faces)
+    thr = field.add("Threshold")
+    field.setNumber(thr, "InField", dist)
+    field.setNumber(thr, "SizeMin", size_min)
+    field.setNumber(thr, "SizeMax", size_max)
+    field.setNumber(thr, "DistMin", 0.3)
+    field.setNumber(thr, "DistMax", 4.0)
+    return thr
+
+
 def _inside(box, outer, tol=1e-6) -> bool:
     return all(box[i] >= outer[i] - tol and box[i + 3] <= outer[i + 3] + tol for i in range(3))
 
 
-def build_prostate_phantom(out: Path, size: float | None = None, seed: int = 0) -> Path:
+def build_prostate_phantom(out: Path, size: float | None = None, seed: int = 0, atlas: dict | None = None) -> Path:
+    """The pelvis phantom of patient ``seed``.
+
+    With ``atlas`` (group -> (points, triangles), e.g. another phantom's bladder and
+    rectum from ``read_surfaces``) those surfaces are not meshed afresh: the atlas
+    triangles are fitted onto this patient's organs and the volume is meshed around
+    them, so every patient built on one atlas has the same loaded nodes, in the same
+    order (paper §3.3.3).
+    """
     h = size or 1.0
     organs = phantom_organs(seed)
     half = (6.0, 5.0, 5.0)
@@ -251,23 +391,32 @@ def build_prostate_phantom(out: Path, size: float | None = None, seed: int = 0) 
             gmsh.model.addPhysicalGroup(2, tags, name=name)
         gmsh.model.addPhysicalGroup(2, prostate_faces, name="prostate_surface")
 
-        # Finer near the organs, coarser towards the skin.
-        organ_faces = faces["bladder"] + faces["rectum"] + prostate_faces
+        # Finer near the organs, finest at the prostate (its surface carries the
+        # stiffness signal: ~1e-3 cm per 10 % of E), coarser towards the skin.
         field = gmsh.model.mesh.field
-        dist = field.add("Distance")
-        field.setNumbers(dist, "SurfacesList", organ_faces)
-        thr = field.add("Threshold")
-        field.setNumber(thr, "InField", dist)
-        field.setNumber(thr, "SizeMin", 0.35 * h)
-        field.setNumber(thr, "SizeMax", 1.6 * h)
-        field.setNumber(thr, "DistMin", 0.3)
-        field.setNumber(thr, "DistMax", 4.0)
-        field.setAsBackgroundMesh(thr)
+        near = field.add("Min")
+        field.setNumbers(near, "FieldsList", [
+            _graded_size(field, faces["bladder"] + faces["rectum"], 0.35 * h, 1.6 * h),
+            _graded_size(field, prostate_faces, PROSTATE_SIZE * h, 1.6 * h)])
+        field.setAsBackgroundMesh(near)
         gmsh.option.setNumber("Mesh.MeshSizeExtendFromBoundary", 0)
         gmsh.option.setNumber("Mesh.MeshSizeFromPoints", 0)
         gmsh.option.setNumber("Mesh.MeshSizeFromCurvature", 0)
         gmsh.option.setNumber("Mesh.RandomSeed", 1)
-        _write_msh(gmsh, out / "phantom.msh", 3)
+        # Quadratic (curved) elements: nodes on the organs' true surfaces, so the source
+        # and a target meshed differently agree on the shape (flat facets would differ
+        # by their sag, ~0.03 cm here: enough to bias E).
+        gmsh.option.setNumber("Mesh.ElementOrder", 2)
+        if atlas is None:
+            _write_msh(gmsh, out / "phantom.msh", 3)
+        else:
+            require(set(atlas) <= set(faces), f"atlas surfaces {sorted(atlas)}: the phantom has only {sorted(faces)}")
+            _generate(gmsh, out / "phantom.msh", 2)
+            surfaces = physical_surfaces(gmsh)
+            for g, (points, triangles) in fit_surfaces(atlas, {g: surfaces[g] for g in atlas}).items():
+                surfaces[g] = (_onto_geometry(gmsh, faces[g], points), triangles)
+            _mesh_inside(gmsh, surfaces, {"tissue": list(faces) + ["prostate_surface"],
+                                          "prostate": ["prostate_surface"]}, out / "phantom.msh")
 
     c = organs["bladder"]["center"]
     return _write_toml(out, PHANTOM_TOML.format(inflation=0.1, cx=c[0], cy=c[1], cz=c[2]))
@@ -279,8 +428,9 @@ def _write_toml(out: Path, text: str) -> Path:
     return path
 
 
-def build_scene(name: str, out, size: float | None = None, seed: int = 0) -> Path:
-    """Write the named built-in scene's mesh and ``problem.toml`` into ``out``."""
+def build_scene(name: str, out, size: float | None = None, seed: int = 0, atlas: dict | None = None) -> Path:
+    """Write the named built-in scene's mesh and ``problem.toml`` into ``out``
+    (``atlas``: see build_prostate_phantom)."""
     require(name in SCENES, f"unknown scene {name!r}; choose one of {', '.join(SCENES)}")
     require(size is None or size > 0, f"--size must be > 0, got {size}")
     out = Path(out)
@@ -290,4 +440,4 @@ def build_scene(name: str, out, size: float | None = None, seed: int = 0) -> Pat
         return build_cantilever(out, size)
     if name == "inclusion":
         return build_inclusion(out, size)
-    return build_prostate_phantom(out, size, seed)
+    return build_prostate_phantom(out, size, seed, atlas)

@@ -20,10 +20,10 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from fenics_elasto.errors import UserError, require
-from fenics_elasto.io import surface as facet_surface
 from fenics_elasto.matching import match_surface
+from fenics_elasto.meshing import read_surfaces
 from fenics_elasto.objective import InverseProblem
-from fenics_elasto.surface import Surface, Target, read_surface
+from fenics_elasto.surface import Target, quadratic_edges, read_surface
 
 
 @dataclass
@@ -96,81 +96,97 @@ def load_bases(path: Path, problem: InverseProblem, rank: int | None) -> Bases:
 
 
 # --------------------------------------------------------------------------- atlas
+#
+# Multi-source training (paper §3.3.3). An atlas is a set of loaded-surface
+# triangulations (group -> (points, triangles)), e.g. ``read_surfaces`` of one
+# patient's mesh. Every patient's mesh is built around the atlas
+# (``build_prostate_phantom(atlas=...)``): the atlas triangles are fitted onto that
+# patient's organs and the volume is meshed around them. So all patients have the
+# same loaded nodes -- the vertices and (P2) edge midpoints of the atlas triangles --
+# and a field in atlas numbering means the same thing on each of them.
 
 
-def interpolate_nodes(values: np.ndarray, source: np.ndarray, points: np.ndarray, k: int = 4) -> np.ndarray:
-    """Per-node rows (n_source, ...) carried to ``points`` by inverse-distance weights of
-    the k nearest source nodes (exact where a point coincides with a node)."""
-    dist, idx = cKDTree(source).query(points, k)
-    weights = 1.0 / np.maximum(dist, 1e-12) ** 2
-    weights /= weights.sum(axis=1, keepdims=True)
-    return np.einsum("pk,pk...->p...", weights, values[idx])
+def atlas_nodes(surfaces: dict, degree: int) -> np.ndarray:
+    """The loaded nodes in atlas numbering: per group, its vertices (in the order of
+    its points), then (degree 2) its edges' midpoint nodes, edges in sorted order.
 
-
-@dataclass
-class AtlasFit:
-    """The atlas's loaded nodes placed on one patient's loaded surfaces (paper §3.3.3).
-
-    ``positions`` are the fitted atlas nodes; per-node fields move between the
-    patient's own loaded nodes and the atlas numbering through them.
+    Surfaces of 3-node triangles (flat meshes) have straight midpoints.
     """
-
-    positions: np.ndarray  # (n_atlas, gdim) on the patient
-    patient_nodes: np.ndarray  # (n_patient, gdim) the patient's loaded nodes
-
-    def to_atlas(self, field: np.ndarray) -> np.ndarray:
-        """A field on the patient's loaded nodes (flat, optionally with columns) in atlas numbering."""
-        return _carry(field, self.patient_nodes, self.positions)
-
-    def to_patient(self, field: np.ndarray) -> np.ndarray:
-        """An atlas-numbered field (flat, optionally with columns) on the patient's loaded nodes."""
-        return _carry(field, self.positions, self.patient_nodes)
-
-
-def _carry(field: np.ndarray, source: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Flat per-node field (rows node*gdim + component) from ``source`` nodes to ``points``."""
-    rows = interpolate_nodes(field.reshape(len(source), -1), source, points)
-    return rows.reshape((len(points) * (field.shape[0] // len(source)),) + field.shape[1:])
+    require(degree in (1, 2), f"atlas numbering is defined for degree 1 or 2, not {degree}")
+    parts = []
+    for points, triangles in surfaces.values():
+        parts.append(points[np.unique(triangles[:, :3])])
+        if degree == 2:
+            if triangles.shape[1] == 6:
+                pairs, middle = quadratic_edges(triangles)
+                midpoints = points[middle]
+            else:
+                pairs = np.sort(triangles[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+                midpoints = points[pairs].mean(axis=1)
+            _, first = np.unique(pairs, axis=0, return_index=True)
+            parts.append(midpoints[first])
+    return np.concatenate(parts)
 
 
-def fit_atlas(atlas: InverseProblem, patient: InverseProblem) -> AtlasFit:
-    """Surface-match the atlas's loaded nodes onto the patient's loaded surfaces."""
-    scene = patient.scene
-    require(scene.loaded == atlas.scene.loaded, "atlas and patient must name the same loaded groups")
-    # The patient's own (undeformed) loaded surfaces, one per group, are the target.
-    zero = patient.model.function("zero")
-    surfaces = []
-    for g in scene.loaded:
-        mesh = facet_surface(zero, scene.facet_groups[g], deformed=False)
-        mesh = scene.comm.bcast(mesh, root=0)
-        pts = np.asarray(mesh.points)[:, : scene.gdim]
-        cells = mesh.lines.reshape(-1, 3)[:, 1:] if scene.gdim == 2 else mesh.faces.reshape(-1, 4)[:, 1:]
-        surfaces.append(Surface(pts, cells))
-    atlas_points = atlas.loaded.gather(atlas.loaded.coords)
-    atlas_groups = atlas.loaded_groups()
-    target = Target(surfaces, atlas_groups)
-    moved = atlas_points + match_surface(atlas_points, atlas_groups, target)
-    return AtlasFit(moved, patient.loaded.gather(patient.loaded.coords))
+def atlas_order(problem: InverseProblem, atlas: dict) -> np.ndarray:
+    """Each atlas node's index among the problem's loaded nodes.
+
+    The patient's mesh must have been built around ``atlas``: its loaded surfaces
+    have the atlas's triangles, and its loaded nodes are exactly the atlas nodes.
+    """
+    scene = problem.scene
+    msh = scene.path.parent / scene.config["mesh"]
+    own = scene.comm.bcast(read_surfaces(msh) if scene.comm.rank == 0 else None, root=0)
+    built_around = all(g in atlas and g in own and np.array_equal(_topology(own[g]), _topology(atlas[g]))
+                       for g in scene.loaded)
+    require(built_around, f"{msh}: its loaded surfaces ({', '.join(scene.loaded)}) were not built around "
+                          "this atlas; mesh the patient with the atlas")
+    nodes = atlas_nodes({g: own[g] for g in scene.loaded}, scene.degree)
+    coords = problem.loaded.gather(problem.loaded.coords)
+    gap, order = cKDTree(coords).query(nodes)
+    tol = 1e-9 * np.ptp(coords, axis=0).max()
+    require(len(nodes) == len(coords) and gap.max() <= tol and len(np.unique(order)) == len(order),
+            f"{msh}: its loaded nodes are not the atlas nodes ({len(coords)} vs {len(nodes)}, worst gap {gap.max():.2g})")
+    return order
 
 
-def train_atlas_bases(atlas: InverseProblem, patients, rank: int, say=print) -> Bases:
-    """Multi-source training: every patient's example displacements, carried to the
-    atlas's loaded nodes through that patient's atlas fit, share one PCA.
+def _topology(surface) -> np.ndarray:
+    """A triangulation's triangles as sorted vertex triples (vertices numbered in
+    point order), in sorted order: equal for equal triangulations."""
+    corners = surface[1][:, :3]
+    rank = np.searchsorted(np.unique(corners), corners)
+    return np.unique(np.sort(rank, axis=1), axis=0)
 
-    ``patients``: (InverseProblem, example paths) per patient.
+
+def to_atlas(field: np.ndarray, order: np.ndarray) -> np.ndarray:
+    """A per-node field (rows node*gdim + component, optionally with columns) in atlas numbering."""
+    return field.reshape(len(order), -1, *field.shape[1:])[order].reshape(field.shape)
+
+
+def from_atlas(field: np.ndarray, order: np.ndarray) -> np.ndarray:
+    """An atlas-numbered per-node field on the patient's own loaded nodes."""
+    out = np.empty_like(field)
+    out.reshape(len(order), -1, *field.shape[1:])[order] = field.reshape(len(order), -1, *field.shape[1:])
+    return out
+
+
+def train_atlas_bases(atlas: dict, patients, rank: int, say=print) -> Bases:
+    """One PCA of every patient's example displacements, in atlas numbering.
+
+    ``patients``: (InverseProblem on a mesh built around the atlas, example paths) each.
     """
     columns = []
     for i, (patient, examples) in enumerate(patients, 1):
-        fit = fit_atlas(atlas, patient)
+        order = atlas_order(patient, atlas)
         data = example_displacements(patient, [example_target(patient, Path(p)) for p in examples], lambda *_: None)
-        columns.append(fit.to_atlas(data))
+        columns.append(to_atlas(data, order))
         say(f"  patient {i}/{len(patients)}: {len(examples)} examples in atlas numbering")
     data = np.concatenate(columns, axis=1)
     W, variance = pca(data, min(rank, data.shape[1]))
-    return Bases(W, variance, atlas.loaded.gather(atlas.loaded.coords), data.shape[1])
+    scene = patients[0][0].scene
+    return Bases(W, variance, atlas_nodes({g: atlas[g] for g in scene.loaded}, scene.degree), data.shape[1])
 
 
-def bases_for_patient(atlas: InverseProblem, bases: Bases, patient: InverseProblem) -> np.ndarray:
-    """Atlas-numbered bases on a (new) patient's loaded nodes, orthonormalised."""
-    W = fit_atlas(atlas, patient).to_patient(bases.W)
-    return np.linalg.qr(W)[0]
+def bases_for_patient(bases: Bases, atlas: dict, patient: InverseProblem) -> np.ndarray:
+    """Atlas-numbered bases on a patient (built around the atlas) who need not have been in training."""
+    return from_atlas(bases.W, atlas_order(patient, atlas))

@@ -104,6 +104,23 @@ def test_unknown_scene_and_bad_override(tmp_path, capsys):
     _expect_user_error(capsys, ["mesh", "letter-a", "--out", tmp_path, "--size", "-1"], "--size")
 
 
+def test_mesh_around_an_atlas(tmp_path, capsys):
+    """A patient meshed around the atlas's organs has the atlas's loaded surfaces;
+    an atlas for a scene that takes none, or a missing atlas file, exits 2."""
+    from fenics_elasto.meshing import atlas_surfaces
+
+    assert main(["mesh", "prostate-phantom", "--out", str(tmp_path / "atlas"), "--size", "1.6"]) == 0
+    atlas = tmp_path / "atlas" / "phantom.msh"
+    assert main(["mesh", "prostate-phantom", "--out", str(tmp_path / "p3"), "--size", "1.6", "--seed", "3",
+                 "--atlas", str(atlas)]) == 0
+    mine, theirs = atlas_surfaces(tmp_path / "p3" / "phantom.msh"), atlas_surfaces(atlas)
+    for g in ("bladder", "rectum"):
+        assert mine[g][1].shape == theirs[g][1].shape and mine[g][0].shape == theirs[g][0].shape
+    _expect_user_error(capsys, ["mesh", "letter-a", "--out", tmp_path / "a", "--atlas", atlas], "--atlas")
+    _expect_user_error(capsys, ["mesh", "prostate-phantom", "--out", tmp_path / "b", "--atlas", tmp_path / "no.msh"],
+                       "no.msh")
+
+
 def test_no_traceback_from_the_console_script(tmp_path):
     proc = run_cli("simulate", tmp_path / "absent.toml", "--out", tmp_path)
     assert proc.returncode == 2

@@ -110,28 +110,48 @@ def test_train_then_reduced_estimate_from_the_command_line(tmp_path):
     assert abs(parallel["materials"]["inclusion"]["E"] - result["materials"]["inclusion"]["E"]) < 1e-4 * ratio * 10
 
 
-def test_atlas_fit_carries_fields_between_patients(tmp_path):
-    """An affine field sampled on a patient's loaded nodes survives the trip to the
-    atlas numbering and back; the fitted atlas nodes lie on the patient's organs."""
-    from scipy.spatial import cKDTree
+def test_patients_meshed_around_an_atlas_share_its_nodes(tmp_path):
+    """A patient meshed around the atlas's bladder and rectum has exactly the atlas
+    nodes as loaded nodes; they sit where the organ's own shape change takes them;
+    numbering round-trips; a patient meshed on its own is refused."""
+    from fenics_elasto.meshing import atlas_surfaces, phantom_organs
+    from fenics_elasto.reduction import atlas_nodes, atlas_order, from_atlas, to_atlas
 
-    from fenics_elasto.reduction import fit_atlas
+    build_scene("prostate-phantom", tmp_path / "atlas", size=1.6)
+    atlas = atlas_surfaces(tmp_path / "atlas" / "phantom.msh")
+    source = build_scene("prostate-phantom", tmp_path / "p", size=1.6, seed=5, atlas=atlas)
+    patient = InverseProblem(load_scene(source), target=False)
+    order = atlas_order(patient, atlas)
+    coords = patient.loaded.gather(patient.loaded.coords)
+    assert len(order) == len(coords) == len(atlas_nodes(atlas, 2))
 
-    atlas = InverseProblem(load_scene(build_scene("prostate-phantom", tmp_path / "atlas", size=1.6)), target=False)
-    patient = InverseProblem(load_scene(build_scene("prostate-phantom", tmp_path / "p", size=1.6, seed=5)),
-                             target=False)
-    fit = fit_atlas(atlas, patient)
-    gap = cKDTree(fit.patient_nodes).query(fit.positions)[0]
-    assert gap.max() < 0.5 and np.median(gap) < 0.2  # node spacing on the organs is ~0.56
-    field = (fit.patient_nodes @ np.array([[0.1, 0.0, 0.02], [0.0, -0.05, 0.0], [0.03, 0.0, 0.1]])).ravel()
-    back = fit.to_patient(fit.to_atlas(field))
-    assert np.abs(back - field).max() < 0.05 * np.abs(field).max()
+    # The bladder is an ellipsoid: its atlas nodes should land near their images under
+    # the affine map between the two ellipsoids (spacing on the organs is ~0.56 cm).
+    a, b = phantom_organs(0)["bladder"], phantom_organs(5)["bladder"]
+    points, triangles = atlas["bladder"]
+    vertices = points[np.unique(triangles[:, :3])]  # the first atlas nodes
+    expected = np.add(b["center"], (vertices - a["center"]) * np.divide(b["radii"], a["radii"]))
+    placed = coords[order[: len(vertices)]]
+    assert np.linalg.norm(placed - expected, axis=1).max() < 0.12
+    assert np.linalg.norm(placed - vertices, axis=1).max() > 0.1  # the patient really differs
+    # Every bladder node, midpoints included, lies on the patient's true ellipsoid (curved mesh).
+    bladder = coords[order[: len(atlas_nodes({"bladder": atlas["bladder"]}, 2))]]
+    assert np.abs(np.sum(((bladder - b["center"]) / b["radii"]) ** 2, axis=1) - 1).max() < 1e-6
+
+    field = np.random.default_rng(0).normal(size=(coords.size, 3))
+    assert np.array_equal(from_atlas(to_atlas(field, order), order), field)
+    assert np.array_equal(to_atlas(coords.ravel(), order).reshape(-1, 3), coords[order])
+
+    alone = InverseProblem(load_scene(build_scene("prostate-phantom", tmp_path / "q", size=1.6, seed=5)),
+                           target=False)
+    with pytest.raises(UserError, match="not built around this atlas"):
+        atlas_order(alone, atlas)
 
 
 @pytest.mark.slow
 def test_held_out_patient_with_bases_from_others(tmp_path):
-    """Bases trained on patients 1-3 (through the atlas, patient 0) fit a patient they
-    never saw and recover its E (coarse P2 phantom: the bound is loose, see README)."""
+    """Bases trained on patients 1-3 (meshed around patient 0's organs) fit a patient
+    they never saw and recover its E (coarse P2 phantom: the bound is loose, see README)."""
     import sys
 
     from conftest import ROOT
@@ -139,21 +159,23 @@ def test_held_out_patient_with_bases_from_others(tmp_path):
     sys.path.insert(0, str(ROOT / "demos"))
     from prostate_elastography import make_examples, make_target
 
+    from fenics_elasto.meshing import atlas_surfaces
     from fenics_elasto.reduction import bases_for_patient, train_atlas_bases
 
-    atlas = InverseProblem(load_scene(build_scene("prostate-phantom", tmp_path / "atlas", size=1.6)), target=False)
+    build_scene("prostate-phantom", tmp_path / "atlas", size=1.6)
+    atlas = atlas_surfaces(tmp_path / "atlas" / "phantom.msh")
     patients = []
     for seed in (1, 2, 3):
-        source = build_scene("prostate-phantom", tmp_path / f"p{seed}", size=1.6, seed=seed)
+        source = build_scene("prostate-phantom", tmp_path / f"p{seed}", size=1.6, seed=seed, atlas=atlas)
         examples = make_examples(source, tmp_path / f"p{seed}" / "examples", 5, seed=10 + seed, patient=seed)
         patients.append((InverseProblem(load_scene(source), target=False), examples))
     bases = train_atlas_bases(atlas, patients, rank=12, say=lambda *_: None)
-    held = build_scene("prostate-phantom", tmp_path / "held", size=1.6, seed=7)
+    held = build_scene("prostate-phantom", tmp_path / "held", size=1.6, seed=7, atlas=atlas)
     target = make_target(tmp_path / "held_target", 50.0, 1.3, patient=7)
     table = ", ".join(f"{g}='{f}'" for g, f in target.items())
     problem = InverseProblem(load_scene(held, [f"target={{surfaces={{{table}}}}}"]))
     before = problem.surface_distance(problem.target.residual(problem.matched_coords))["rms"]
-    result, _, _ = estimate(problem, say=lambda *_: None, basis=bases_for_patient(atlas, bases, problem))
+    result, _, _ = estimate(problem, say=lambda *_: None, basis=bases_for_patient(bases, atlas, problem))
     print("held-out patient:", result["materials"]["prostate"]["E"], result["surface_distance"], "undeformed", before)
     assert result["surface_distance"]["rms"] < 0.3 * before  # the organs really moved onto the target
     assert abs(result["materials"]["prostate"]["E"] - 50.0) / 50.0 < 0.25
