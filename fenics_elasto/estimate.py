@@ -38,6 +38,7 @@ class Options:
     inner: str = "auto"
     inner_maxiter: int = 400
     outer_maxiter: int = 40
+    outer_xtol: float = 1e-3  # the outer loop stops once a step moves log E by less (nu: a tenth of it)
     scan: int = 5  # material values per estimated constant in the initial scan
     inner_tol: float = 1e-6  # relative decrease of Phi that ends the inner loop
     full_gn_limit: int = 1500  # largest full force space for which "auto" picks Gauss-Newton
@@ -91,6 +92,7 @@ class NestedEstimator:
         self.control_scale = 1.0
         self.phi_scale = 1.0
         self.anchor = None  # reduced coordinates of the surface-matched boundary displacement
+        self.seen = {}  # rounded (log E, nu) bytes -> (controls, evaluation) of every Phi* solved
 
     # --- variables: log E and nu
 
@@ -193,9 +195,15 @@ class NestedEstimator:
         return q, nit
 
     def phi_star(self, theta, controls0, stage: str):
+        """Phi*(theta) and its inner optimum; a material value seen before is not
+        solved again (L-BFGS-B re-evaluates its start, the best scan point)."""
+        key = np.round(self.to_s(np.asarray(theta, float)), 12).tobytes()
+        if key in self.seen:
+            return self.seen[key]
         controls, ev, nit = self.solve_inner(theta, controls0)
         self.progress.record(theta, controls, ev.phi, nit, stage)
         self.say(f"  {stage:5s} {self._describe(theta)}  Phi* = {ev.phi:.6e}  ({nit} inner iterations)")
+        self.seen[key] = (controls, ev)
         return controls, ev
 
     def _describe(self, theta) -> str:
@@ -233,8 +241,15 @@ class NestedEstimator:
             grad_s = ev.grad_theta * np.where(self.log_scale, theta, 1.0)
             return ev.phi / self.phi_scale, grad_s / self.phi_scale
 
-        def count(_):
+        last = {"s": self.to_s(theta_best)}
+        xtol = self.options.outer_xtol * np.where(self.log_scale, 1.0, 0.1)
+
+        def count(intermediate_result):
             self.outer_iterations += 1
+            settled = np.all(np.abs(intermediate_result.x - last["s"]) < xtol)
+            last["s"] = intermediate_result.x.copy()
+            if settled:
+                raise StopIteration  # more digits of E would cost factorizations, not accuracy
 
         self.say("outer L-BFGS-B over the materials (envelope gradient)")
         bounds = [tuple(self.to_s(np.array(b))) for b in p.bounds()]
