@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import traceback
 from pathlib import Path
 
 from mpi4py import MPI
@@ -120,6 +121,12 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr, flush=True)
         return 130
+    except Exception:
+        if MPI.COMM_WORLD.size > 1:  # a bug on one rank would leave the others waiting forever
+            traceback.print_exc()
+            sys.stderr.flush()
+            MPI.COMM_WORLD.Abort(1)
+        raise
 
 
 if __name__ == "__main__":

@@ -76,10 +76,11 @@ def gather_entities(u: fem.Function, dim: int, entities: np.ndarray, level: int 
     gdim = mesh.geometry.dim
     mesh.topology.create_connectivity(dim, mesh.topology.dim)
     owned = entities[entities < mesh.topology.index_map(dim).size_local]
-    nodes = dolfinx.mesh.entities_to_geometry(mesh, dim, owned.astype(np.int32)).reshape(len(owned), -1)
+    width = dim + 1
+    nodes = dolfinx.mesh.entities_to_geometry(mesh, dim, owned.astype(np.int32))
+    nodes = nodes.reshape(len(owned), -1) if len(owned) else np.zeros((0, width), np.int32)
     blocks = node_blocks(u.function_space)
     x, values = mesh.geometry.x[:, :gdim], u.x.array.reshape(-1, gdim)
-    width = dim + 1
     if dim < mesh.topology.dim and nodes.shape[1] > width and (blocks[nodes] >= 0).all():
         nodes = _quadratic_order(nodes, x) if dim == 2 else nodes
         shape = _pieces(dim, level)
