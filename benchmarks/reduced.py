@@ -1,16 +1,22 @@
-"""Costs of the reduced force bases on the prostate phantom (P2, serial).
+"""Costs and pay-off of the reduced force bases on the prostate phantom (P2, serial).
 
-    python benchmarks/reduced.py [--size 1.6]
+    python benchmarks/reduced.py [--size 1.6] [--skip-tables]
 
 1. The response J of r modes: one factorization plus an r-column block solve
    (MatMatSolve), against r single back-solves in a loop.
 2. One inner iteration: reduced Gauss-Newton (dense algebra + closest points, no FE
    solve) against full-space L-BFGS (forward + adjoint back-solves) and the
    full-space response that Gauss-Newton would need.
-The accuracy side (Table 1, the rank sweep of Fig. 8) is printed by `make demo`.
+3. Table-1-like: whole estimates, full force space against reduced (rank 12) on the
+   same targets, for true prostate E 25/50/75 (landmark targets, where both spaces
+   determine E), plus the paper's own full-space method (L-BFGS on raw nodal forces)
+   and the full space on surface targets, both capped.
+4. Fig-8-like: rank against E error, inner iterations and time (surface targets).
+The same study at the demo's scale is `make demo` (demos/prostate_elastography.py).
 """
 
 import argparse
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -26,15 +32,28 @@ from fenics_elasto.scene import load_scene
 from fenics_elasto.simulate import simulate
 from forward import best_of  # benchmarks/ is the script's folder
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "demos"))
+from prostate_elastography import (FINE, TRUE_E, make_examples, make_target, rank_sweep,  # noqa: E402
+                                   rank_table, recovered, run_case, speedup_table)
+from fenics_elasto.reduction import train_bases  # noqa: E402
+
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--size", type=float, default=1.6)
+    parser.add_argument("--skip-tables", action="store_true", help="costs only (1, 2), not the whole estimates")
     args = parser.parse_args()
+    costs(args.size)
+    if not args.skip_tables:
+        with tempfile.TemporaryDirectory() as tmp:
+            estimates(Path(tmp), args.size)
+
+
+def costs(size: float) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        source = build_scene("prostate-phantom", tmp / "source", size=args.size)
-        fine = load_scene(build_scene("prostate-phantom", tmp / "fine", size=args.size * 0.8), ["materials.prostate.E=50"])
+        source = build_scene("prostate-phantom", tmp / "source", size=size)
+        fine = load_scene(build_scene("prostate-phantom", tmp / "fine", size=size * 0.8), ["materials.prostate.E=50"])
         write_matched_surfaces(tmp / "target", fine, simulate(fine).u)
         table = ", ".join(f"{g}='{tmp / 'target' / f'surface_{g}.vtp'}'" for g in ("bladder", "prostate_surface", "rectum"))
         problem = InverseProblem(load_scene(source, [f"target={{surfaces={{{table}}}}}"]))
@@ -76,6 +95,42 @@ def main():
     full = problem.force_dofs * solve
     print(f"| full-space Gauss-Newton would first need J: {problem.force_dofs} back-solves | ~{full:.1f} | "
           f"{problem.force_dofs} |")
+
+
+
+def estimates(tmp: Path, size: float) -> None:
+    source = build_scene("prostate-phantom", tmp / "source", size=size)
+    examples = make_examples(source, tmp / "examples", 12)
+    trainer = InverseProblem(load_scene(source), target=False)
+    W = train_bases(trainer, examples, rank=12, say=lambda *_: None).W
+    targets = {E: make_target(tmp / f"E{E:g}", E, FINE, source=source) for E in TRUE_E}
+    rows = []
+    for E in TRUE_E:
+        rows.append((E, run_case(source, targets[E]["landmarks"]), run_case(source, targets[E]["landmarks"], W)))
+        print(f"  E = {E:g}: full {recovered(rows[-1][1]):.2f} ({rows[-1][1]['seconds']:.1f} s), "
+              f"reduced {recovered(rows[-1][2]):.2f} ({rows[-1][2]['seconds']:.1f} s)", flush=True)
+    print("\n" + "\n".join(speedup_table(rows, trainer.force_dofs, 12)))
+
+    E = 50.0
+    reduced = {"landmarks": rows[TRUE_E.index(E)][2], "surfaces": run_case(source, targets[E]["surfaces"], W)}
+    capped = Options(inner_maxiter=100, outer_maxiter=6)
+    others = [("paper's full space: L-BFGS on raw forces, landmarks", "landmarks",
+               run_case(source, targets[E]["landmarks"], options=Options(inner="lbfgs-forces", inner_maxiter=100,
+                                                                         outer_maxiter=6))),
+              ("full space, surfaces (E not determined)", "surfaces",
+               run_case(source, targets[E]["surfaces"], options=capped))]
+    print(f"\nOther full-space estimates (true E = {E:g}; capped at 100 inner / 6 outer iterations), "
+          "against the reduced estimate on the same target")
+    print("| method | target | E | error % | seconds | outer/inner | reduced E | reduced s | speed-up |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for name, kind, r in others:
+        red = reduced[kind]
+        print(f"| {name} | {kind} | {recovered(r):.2f} | {100 * abs(recovered(r) - E) / E:.1f} | {r['seconds']:.1f} | "
+              f"{r['iterations']['outer']}/{r['iterations']['inner']} | {recovered(red):.2f} | {red['seconds']:.1f} | "
+              f"{r['seconds'] / red['seconds']:.1f}x |")
+
+    print(f"\nFig-8-like: rank of the bases (surface target, true E = {E:g})")
+    print("\n".join(rank_table(rank_sweep(source, targets[E]["surfaces"], W, (1, 2, 4, 8, 12), E))))
 
 
 if __name__ == "__main__":

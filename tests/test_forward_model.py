@@ -11,7 +11,8 @@ from dolfinx import fem
 
 from conftest import run_mpi_script
 from fenics_elasto.elasticity import ElasticModel, lame, lame_jacobian
-from fenics_elasto.scene import load_scene
+from fenics_elasto.errors import UserError
+from fenics_elasto.scene import load_scene, reconfigure
 from fenics_elasto.simulate import material_values, simulate
 
 
@@ -58,6 +59,47 @@ def test_scaling_stiffness_and_forces_leaves_u_unchanged(scenes):
     u = simulate(scaled).u.x.array
     assert np.abs(u - base).max() < 1e-10 * np.abs(base).max()
     assert np.abs(base).max() > 0.01  # the load really deforms the beam
+
+
+def test_reconfigure_equals_loading_with_the_overrides(scenes):
+    """Overrides on a loaded scene (no mesh re-read, one shared model) give the same
+    displacement as loading the file with them; changing the mesh is refused."""
+    settings = ["materials.beam.E=3000.0", "boundary.load.tip=[0.5, -2.0]"]
+    scene = load_scene(scenes["cantilever"])
+    model = ElasticModel(scene)
+    again = reconfigure(scene, settings)
+    assert again.mesh is scene.mesh
+    u = simulate(again, model).u.x.array
+    expected = simulate(load_scene(scenes["cantilever"], settings)).u.x.array
+    assert np.abs(u - expected).max() < 1e-12 * np.abs(expected).max()
+    assert np.abs(u - simulate(scene, model).u.x.array).max() > 0.1 * np.abs(expected).max()
+    with pytest.raises(UserError, match="keeps the mesh"):
+        reconfigure(scene, ["mesh='other.msh'"])
+
+
+def test_curved_surfaces_lie_on_the_organs(scenes, phantom):
+    """The phantom's P2 geometry with a P2 field writes 4x4 flat pieces per curved
+    facet, all on the true prostate ellipsoid up to the quadratic interpolation
+    error; with a P1 field (corners only) the flat facets cut inside by their sag."""
+    from fenics_elasto.io import surface
+    from fenics_elasto.meshing import phantom_organs
+
+    prostate = phantom_organs(0)["prostate"]
+
+    def depth(points):  # 1 - elliptic radius: > 0 inside the organ
+        return 1 - np.sqrt(np.sum(((points - prostate["center"]) / prostate["radii"]) ** 2, axis=1))
+
+    def centroid_depth(mesh):
+        return depth(np.asarray(mesh.points)[mesh.faces.reshape(-1, 4)[:, 1:]].mean(axis=1))
+
+    curved_scene = load_scene(scenes["prostate-phantom"])
+    facets = curved_scene.facet_groups["prostate_surface"]
+    curved = surface(ElasticModel(curved_scene).function("zero"), facets, deformed=False)
+    flat_scene, flat_model = phantom  # degree 1: no midpoint values, corners only
+    flat = surface(flat_model.function("zero"), flat_scene.facet_groups["prostate_surface"], deformed=False)
+    assert curved.n_cells == 16 * len(facets) and flat.n_cells == len(facets)
+    assert np.abs(depth(np.asarray(curved.points))).max() < 2e-3
+    assert centroid_depth(curved).max() < 0.2 * centroid_depth(flat).max()
 
 
 def test_factorization_is_cached_and_counted(phantom):

@@ -172,10 +172,9 @@ def test_held_out_patient_with_bases_from_others(tmp_path):
     bases = train_atlas_bases(atlas, patients, rank=12, say=lambda *_: None)
     held = build_scene("prostate-phantom", tmp_path / "held", size=1.6, seed=7, atlas=atlas)
     target = make_target(tmp_path / "held_target", 50.0, 1.3, patient=7)
-    table = ", ".join(f"{g}='{f}'" for g, f in target.items())
-    problem = InverseProblem(load_scene(held, [f"target={{surfaces={{{table}}}}}"]))
+    problem = InverseProblem(load_scene(held, [target["surfaces"]]))
     before = problem.surface_distance(problem.target.residual(problem.matched_coords))["rms"]
     result, _, _ = estimate(problem, say=lambda *_: None, basis=bases_for_patient(bases, atlas, problem))
     print("held-out patient:", result["materials"]["prostate"]["E"], result["surface_distance"], "undeformed", before)
     assert result["surface_distance"]["rms"] < 0.3 * before  # the organs really moved onto the target
-    assert abs(result["materials"]["prostate"]["E"] - 50.0) / 50.0 < 0.25
+    assert abs(result["materials"]["prostate"]["E"] - 50.0) / 50.0 < 0.12  # measured 8 % (rank 12, 15 examples)
