@@ -33,7 +33,7 @@ from fenics_elasto.simulate import simulate
 from forward import best_of  # benchmarks/ is the script's folder
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "demos"))
-from prostate_elastography import (FINE, TRUE_E, make_examples, make_target, rank_sweep,  # noqa: E402
+from prostate_elastography import (FINE, TRUE_E, make_examples, make_targets, rank_sweep,  # noqa: E402
                                    rank_table, recovered, run_case, speedup_table)
 from fenics_elasto.reduction import train_bases  # noqa: E402
 
@@ -103,7 +103,7 @@ def estimates(tmp: Path, size: float) -> None:
     examples = make_examples(source, tmp / "examples", 12)
     trainer = InverseProblem(load_scene(source), target=False)
     W = train_bases(trainer, examples, rank=12, say=lambda *_: None).W
-    targets = {E: make_target(tmp / f"E{E:g}", E, FINE, source=source) for E in TRUE_E}
+    targets = make_targets(tmp / "targets", TRUE_E, FINE, source=source)
     rows = []
     for E in TRUE_E:
         rows.append((E, run_case(source, targets[E]["landmarks"]), run_case(source, targets[E]["landmarks"], W)))

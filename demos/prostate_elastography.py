@@ -79,29 +79,34 @@ def make_examples(source: Path, out: Path, count: int, seed: int = 1, patient: i
     return folders
 
 
-def make_target(out: Path, E: float, size: float, patient: int = 0, source: Path | None = None) -> dict:
-    """The held-out 'measurement': a finer mesh, organ motion unlike the examples.
+def make_targets(out: Path, Es, size: float, patient: int = 0, source: Path | None = None) -> dict:
+    """The held-out 'measurements', one per true prostate E: a finer mesh (built once),
+    organ motion unlike the examples.
 
-    Returns the --set value of a surface target and, given the source, of a landmark
-    target (the fine solution at the source's matched nodes).
+    Returns E -> {"surfaces": --set value of a surface target, and given the source,
+    "landmarks": of a landmark target (the fine solution at the source's matched nodes)}.
     """
     organs = phantom_organs(patient)
-    problem = build_scene("prostate-phantom", out / "fine", size=size, seed=patient)
+    fine = load_scene(build_scene("prostate-phantom", out / "fine", size=size, seed=patient))
+    model = ElasticModel(fine)
+    matched = load_scene(source) if source is not None else None
     motion = organ_motion(organs, 0.12, [0.1, -0.1, 0.05], 0.15, [0.05, 0.0, 0.0])
-    scene = load_scene(problem, motion + [f"materials.prostate.E={E}"])
-    folder = out / f"target_E{E:g}"
-    u = simulate(scene).u
-    write_matched_surfaces(folder, scene, u)
-    table = ", ".join(f"{g}='{(folder / f'surface_{g}.vtp').resolve()}'" for g in ORGANS)
-    target = {"surfaces": f"target={{surfaces={{{table}}}}}"}
-    if source is not None:
-        landmarks = write_landmarks_for(load_scene(source), u, folder / "landmarks.csv")
-        target["landmarks"] = f"target={{landmarks='{landmarks.resolve()}'}}"
-    return target
+    targets = {}
+    for E in Es:
+        scene = reconfigure(fine, motion + [f"materials.prostate.E={E}"])
+        folder = out / f"target_E{E:g}"
+        u = simulate(scene, model).u
+        write_matched_surfaces(folder, scene, u)
+        table = ", ".join(f"{g}='{(folder / f'surface_{g}.vtp').resolve()}'" for g in ORGANS)
+        targets[E] = {"surfaces": f"target={{surfaces={{{table}}}}}"}
+        if matched is not None:
+            landmarks = write_landmarks_for(matched, u, folder / "landmarks.csv")
+            targets[E]["landmarks"] = f"target={{landmarks='{landmarks.resolve()}'}}"
+    return targets
 
 
 def run_case(source: Path, target: str, basis=None, options=None) -> dict:
-    """One estimate (``target``: a --set value from make_target); result.json fields + seconds."""
+    """One estimate (``target``: a --set value from make_targets); result.json fields + seconds."""
     problem = InverseProblem(load_scene(source, [target]))
     start = time.perf_counter()
     result, _, _ = estimate(problem, options=options, say=lambda *_: None, basis=basis)
@@ -178,12 +183,12 @@ def main():
     print(f"   rank {rank} of {trainer.force_dofs} force dofs; explained variance "
           + " ".join(f"{v:.3f}" for v in bases.variance), flush=True)
 
-    results, targets = {}, {}
+    print(f"3. targets with prostate E = {', '.join(f'{E:g}' for E in cases)} kPa (fine mesh h = {FINE})", flush=True)
+    targets = make_targets(out, cases, FINE, source=source)
+    results = {}
     for E in cases:
-        print(f"3. target with prostate E = {E:g} kPa (fine mesh h = {FINE})", flush=True)
-        targets[E] = make_target(out, E, FINE, source=source)
         results[E] = run_case(source, targets[E]["surfaces"], bases.W)
-        print(f"   reduced, surfaces: E = {recovered(results[E]):.2f} ({results[E]['seconds']:.1f} s, "
+        print(f"   true E = {E:g}, reduced, surfaces: E = {recovered(results[E]):.2f} ({results[E]['seconds']:.1f} s, "
               f"{iterations(results[E])} outer/inner)", flush=True)
     lines = table1(results, rank)
     print(f"4. speed-up: full force space against reduced, landmark target, E = {middle:g}", flush=True)
@@ -275,9 +280,9 @@ def atlas_study(out: Path, patients: int, examples: int, held_out, cases, fine: 
     rows = []
     for seed in held_out:
         source = build_scene("prostate-phantom", out / f"heldout{seed}", size=SIZE, seed=seed, atlas=atlas)
+        targets = make_targets(out / f"heldout{seed}", cases, fine, patient=seed)
         for E in cases:
-            target = make_target(out / f"heldout{seed}", E, fine, patient=seed)
-            problem = InverseProblem(load_scene(source, [target["surfaces"]]))
+            problem = InverseProblem(load_scene(source, [targets[E]["surfaces"]]))
             start = time.perf_counter()
             basis = bases_for_patient(bases, atlas, problem)
             result, _, _ = estimate(problem, say=lambda *_: None, basis=basis)

@@ -45,6 +45,7 @@ class Surface:
         self.points = np.ascontiguousarray(points, dtype=np.float64)
         self.cells = np.ascontiguousarray(cells, dtype=np.int64)
         self.dim = self.points.shape[1]
+        self._tree = None  # libigl AABB tree (3D), built on the first query
 
         corners = self.points[self.cells]
         if self.dim == 2:
@@ -62,7 +63,13 @@ class Surface:
         x = np.ascontiguousarray(x, dtype=np.float64)
         if len(x) == 0:
             return np.zeros(0, np.int64), x.copy()
-        _, simplex, cp = igl.point_mesh_squared_distance(x, self.points, self.cells)
+        if self.dim == 2:  # libigl's stored AABB tree is for triangles only
+            _, simplex, cp = igl.point_mesh_squared_distance(x, self.points, self.cells)
+            return simplex, cp
+        if self._tree is None:  # built once: rebuilding it per query cost 5x the query
+            self._tree = igl.AABB()
+            self._tree.init(self.points, self.cells)
+        _, simplex, cp = self._tree.squared_distance(self.points, self.cells, x)
         return simplex, cp
 
     def curvature_directions(self, x: np.ndarray) -> np.ndarray:

@@ -157,7 +157,7 @@ def test_held_out_patient_with_bases_from_others(tmp_path):
     from conftest import ROOT
 
     sys.path.insert(0, str(ROOT / "demos"))
-    from prostate_elastography import make_examples, make_target
+    from prostate_elastography import make_examples, make_targets
 
     from fenics_elasto.meshing import atlas_surfaces
     from fenics_elasto.reduction import bases_for_patient, train_atlas_bases
@@ -171,7 +171,7 @@ def test_held_out_patient_with_bases_from_others(tmp_path):
         patients.append((InverseProblem(load_scene(source), target=False), examples))
     bases = train_atlas_bases(atlas, patients, rank=12, say=lambda *_: None)
     held = build_scene("prostate-phantom", tmp_path / "held", size=1.6, seed=7, atlas=atlas)
-    target = make_target(tmp_path / "held_target", 50.0, 1.3, patient=7)
+    target = make_targets(tmp_path / "held_target", (50.0,), 1.3, patient=7)[50.0]
     problem = InverseProblem(load_scene(held, [target["surfaces"]]))
     before = problem.surface_distance(problem.target.residual(problem.matched_coords))["rms"]
     result, _, _ = estimate(problem, say=lambda *_: None, basis=bases_for_patient(bases, atlas, problem))
