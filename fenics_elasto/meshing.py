@@ -45,8 +45,12 @@ def _generate(gmsh, path: Path, dim: int) -> None:
 
 
 def _write_msh(gmsh, path: Path, dim: int) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
     _generate(gmsh, path, dim)
+    _save(gmsh, path)
+
+
+def _save(gmsh, path: Path) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
     gmsh.option.setNumber("Mesh.MshFileVersion", 4.1)
     gmsh.option.setNumber("Mesh.SaveAll", 0)
     gmsh.write(str(path))
@@ -125,8 +129,7 @@ def _mesh_inside(gmsh, surfaces: dict, volumes: dict, path: Path) -> None:
     _generate(gmsh, path, 3)
     if edge_keys:
         _curve_surfaces(gmsh, np.concatenate(corners), np.concatenate(edge_keys), np.concatenate(edge_points))
-    path.parent.mkdir(parents=True, exist_ok=True)
-    gmsh.write(str(path))
+    _save(gmsh, path)
 
 
 def _edge_key(pairs: np.ndarray) -> np.ndarray:

@@ -23,7 +23,7 @@ from fenics_elasto.errors import UserError, require
 from fenics_elasto.matching import match_surface
 from fenics_elasto.meshing import read_surfaces
 from fenics_elasto.objective import InverseProblem
-from fenics_elasto.surface import Target, quadratic_edges, read_surface
+from fenics_elasto.surface import Target, quadratic_edges, read_surface, triangle_edges
 
 
 @dataclass
@@ -117,12 +117,8 @@ def atlas_nodes(surfaces: dict, degree: int) -> np.ndarray:
     for points, triangles in surfaces.values():
         parts.append(points[np.unique(triangles[:, :3])])
         if degree == 2:
-            if triangles.shape[1] == 6:
-                pairs, middle = quadratic_edges(triangles)
-                midpoints = points[middle]
-            else:
-                pairs = np.sort(triangles[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
-                midpoints = points[pairs].mean(axis=1)
+            pairs = triangle_edges(triangles)
+            midpoints = points[quadratic_edges(triangles)[1]] if triangles.shape[1] == 6 else points[pairs].mean(axis=1)
             _, first = np.unique(pairs, axis=0, return_index=True)
             parts.append(midpoints[first])
     return np.concatenate(parts)
@@ -135,7 +131,7 @@ def atlas_order(problem: InverseProblem, atlas: dict) -> np.ndarray:
     have the atlas's triangles, and its loaded nodes are exactly the atlas nodes.
     """
     scene = problem.scene
-    msh = scene.path.parent / scene.config["mesh"]
+    msh = scene.mesh_file
     own = scene.comm.bcast(read_surfaces(msh) if scene.comm.rank == 0 else None, root=0)
     built_around = all(g in atlas and g in own and np.array_equal(_topology(own[g]), _topology(atlas[g]))
                        for g in scene.loaded)

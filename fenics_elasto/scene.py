@@ -67,6 +67,10 @@ class Scene:
     def comm(self):
         return self.mesh.comm
 
+    @property
+    def mesh_file(self) -> Path:
+        return self.path.parent / self.config["mesh"]
+
     def facets(self, groups) -> np.ndarray:
         """Local facet indices in the union of the named groups."""
         parts = [self.facet_groups[g] for g in groups]

@@ -31,11 +31,15 @@ def _barycentric(p, corners):
     return np.c_[1.0 - lam.sum(axis=1), lam]
 
 
+def triangle_edges(triangles: np.ndarray) -> np.ndarray:
+    """The edges 01, 12, 20 of each triangle as vertex pairs sorted within each row."""
+    return np.sort(triangles[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+
+
 def quadratic_edges(triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Edges of gmsh 6-node triangles (v0, v1, v2, e01, e12, e20): (vertex pairs,
     sorted within each row; the edge's midpoint node), three rows per triangle."""
-    pairs = np.sort(triangles[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
-    return pairs, triangles[:, 3:6].ravel()
+    return triangle_edges(triangles), triangles[:, 3:6].ravel()
 
 
 class Surface:
