@@ -92,7 +92,7 @@ class NestedEstimator:
         self.control_scale = 1.0
         self.phi_scale = 1.0
         self.anchor = None  # reduced coordinates of the surface-matched boundary displacement
-        self.seen = {}  # rounded (log E, nu) bytes -> (controls, evaluation) of every Phi* solved
+        self.seen = []  # (log E, nu), controls, evaluation of every Phi* solved
 
     # --- variables: log E and nu
 
@@ -195,15 +195,18 @@ class NestedEstimator:
         return q, nit
 
     def phi_star(self, theta, controls0, stage: str):
-        """Phi*(theta) and its inner optimum; a material value seen before is not
-        solved again (L-BFGS-B re-evaluates its start, the best scan point)."""
-        key = np.round(self.to_s(np.asarray(theta, float)), 12).tobytes()
-        if key in self.seen:
-            return self.seen[key]
+        """Phi*(theta) and its inner optimum. A material value within 1e-3 xtol of one
+        solved before is not solved again: L-BFGS-B re-evaluates its start (the best
+        scan point), and near the optimum its line search can creep by 1e-9 steps,
+        where Phi* is flat to the inner tolerance -- each step a factorization."""
+        s = self.to_s(np.asarray(theta, float))
+        for s_seen, controls, ev in self.seen:
+            if np.all(np.abs(s - s_seen) < 1e-3 * self.options.outer_xtol):
+                return controls, ev
         controls, ev, nit = self.solve_inner(theta, controls0)
         self.progress.record(theta, controls, ev.phi, nit, stage)
         self.say(f"  {stage:5s} {self._describe(theta)}  Phi* = {ev.phi:.6e}  ({nit} inner iterations)")
-        self.seen[key] = (controls, ev)
+        self.seen.append((s, controls, ev))
         return controls, ev
 
     def _describe(self, theta) -> str:
