@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from collections import OrderedDict
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import ufl
@@ -125,7 +126,6 @@ class ElasticModel:
         self.factorizations = 0
         self._cache: OrderedDict = OrderedDict()
         self._cache_size = cache_size
-        self.A, self.B = self._assemble_material_matrices()
 
     # --- sizes and DOF sets
 
@@ -162,7 +162,10 @@ class ElasticModel:
 
     # --- matrices
 
-    def _assemble_material_matrices(self):
+    @cached_property
+    def material_matrices(self) -> tuple[list, list]:
+        """(A_m, B_m) per material, assembled on first use: a model that only numbers
+        nodes (landmarks, atlas order) never pays for them."""
         mesh, V = self.scene.mesh, self.V
         u, v = ufl.TrialFunction(V), ufl.TestFunction(V)
         chi = fem.Function(fem.functionspace(mesh, ("DG", 0)))
@@ -186,10 +189,11 @@ class ElasticModel:
     def stiffness(self, E, nu) -> PETSc.Mat:
         """Unconstrained K(theta) as a linear combination of the cached matrices."""
         mu, lam = self.lame_parameters(E, nu)
-        K = self.A[0].duplicate(copy=False)
-        for m in range(len(self.A)):
-            K.axpy(mu[m], self.A[m], structure=PETSc.Mat.Structure.SAME_NONZERO_PATTERN)
-            K.axpy(lam[m], self.B[m], structure=PETSc.Mat.Structure.SAME_NONZERO_PATTERN)
+        A, B = self.material_matrices
+        K = A[0].duplicate(copy=False)
+        for m in range(len(A)):
+            K.axpy(mu[m], A[m], structure=PETSc.Mat.Structure.SAME_NONZERO_PATTERN)
+            K.axpy(lam[m], B[m], structure=PETSc.Mat.Structure.SAME_NONZERO_PATTERN)
         return K
 
     def apply_stiffness(self, E, nu, x: PETSc.Vec, out: PETSc.Vec) -> PETSc.Vec:
@@ -197,10 +201,11 @@ class ElasticModel:
         mu, lam = self.lame_parameters(E, nu)
         out.zeroEntries()
         tmp = out.duplicate()
-        for m in range(len(self.A)):
-            self.A[m].mult(x, tmp)
+        A, B = self.material_matrices
+        for m in range(len(A)):
+            A[m].mult(x, tmp)
             out.axpy(mu[m], tmp)
-            self.B[m].mult(x, tmp)
+            B[m].mult(x, tmp)
             out.axpy(lam[m], tmp)
         tmp.destroy()
         return out

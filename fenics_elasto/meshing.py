@@ -56,12 +56,18 @@ def _save(gmsh, path: Path) -> None:
     gmsh.write(str(path))
 
 
-def physical_surfaces(gmsh) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """Every facet group of the current 3D gmsh mesh as (points, triangles), the
-    points numbered per group in node-tag order."""
+def _node_positions(gmsh) -> np.ndarray:
+    """Coordinates of every node of the current gmsh mesh, indexed by node tag."""
     tags, coords, _ = gmsh.model.mesh.getNodes()
     position = np.zeros((int(tags.max()) + 1, 3))
     position[tags] = coords.reshape(-1, 3)
+    return position
+
+
+def physical_surfaces(gmsh) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Every facet group of the current 3D gmsh mesh as (points, triangles), the
+    points numbered per group in node-tag order."""
+    position = _node_positions(gmsh)
     surfaces = {}
     for name, rows in gmsh_facet_groups(gmsh, 3).items():
         used, local = np.unique(rows + 1, return_inverse=True)
@@ -145,9 +151,7 @@ def _curve_surfaces(gmsh, corners: np.ndarray, keys: np.ndarray, midpoints: np.n
     gmsh.model.mesh.setOrder(2)
     keys, first = np.unique(keys, return_index=True)
     midpoints = midpoints[first]
-    tags, coords, _ = gmsh.model.mesh.getNodes()
-    position = np.zeros((int(tags.max()) + 1, 3))
-    position[tags] = coords.reshape(-1, 3)
+    position = _node_positions(gmsh)
     tree = cKDTree(corners)
     for _, tag in gmsh.model.getEntities(2):
         nodes = gmsh.model.mesh.getElementsByType(9, tag)[1].reshape(-1, 6).astype(np.int64)

@@ -194,12 +194,13 @@ class InverseProblem:
         names = [m.name for m in self.scene.materials]
         uv, wv = u.x.petsc_vec, w.x.petsc_vec
         tmp = uv.duplicate()
+        A, B = self.model.material_matrices
         grad = []
         for material, key in self.estimated:
             m = names.index(material)
-            self.model.A[m].mult(uv, tmp)
+            A[m].mult(uv, tmp)
             wAu = wv.dot(tmp)
-            self.model.B[m].mult(uv, tmp)
+            B[m].mult(uv, tmp)
             wBu = wv.dot(tmp)
             dmu, dlam = (dmu_dE[m], dlam_dE[m]) if key == "E" else (dmu_dnu[m], dlam_dnu[m])
             grad.append(-(dmu * wAu + dlam * wBu))
