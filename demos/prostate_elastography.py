@@ -36,7 +36,7 @@ from fenics_elasto.estimate import estimate
 from fenics_elasto.io import write_matched_surfaces
 from fenics_elasto.meshing import build_scene, atlas_surfaces, phantom_organs
 from fenics_elasto.objective import InverseProblem
-from fenics_elasto.reduction import bases_for_patient, train_atlas_bases, train_bases
+from fenics_elasto.reduction import train_atlas_bases, train_bases
 from fenics_elasto.scene import load_scene, reconfigure
 from fenics_elasto.simulate import simulate, write_landmarks_for
 
@@ -284,7 +284,7 @@ def atlas_study(out: Path, patients: int, examples: int, held_out, cases, fine: 
         for E in cases:
             problem = InverseProblem(load_scene(source, [targets[E]["surfaces"]]))
             start = time.perf_counter()
-            basis = bases_for_patient(bases, atlas, problem)
+            basis = bases.on(problem)
             result, _, _ = estimate(problem, say=lambda *_: None, basis=basis)
             result["seconds"] = time.perf_counter() - start
             rows.append((seed, E, result))

@@ -32,12 +32,17 @@ def _parser() -> argparse.ArgumentParser:
         p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a TOML value")
 
     p = sub.add_parser("train", help="PCA force bases from example target surfaces")
-    p.add_argument("problem", type=Path)
-    p.add_argument("--examples", nargs="+", required=True, type=Path,
+    p.add_argument("problem", type=Path, nargs="?", help="the scene the --examples deform")
+    p.add_argument("--examples", nargs="+", default=[], type=Path,
                    help="target surfaces, or folders of surface_<group>.vtp (as simulate writes)")
+    p.add_argument("--patient", nargs="+", action="append", default=[], type=Path, metavar="PROBLEM.toml EXAMPLE",
+                   help="with --atlas: one more training scene and its examples (repeat per patient)")
+    p.add_argument("--atlas", type=Path, default=None,
+                   help="the mesh every training scene was built around (`mesh --atlas`): bases in its "
+                        "numbering, usable on any patient built around it")
     p.add_argument("--rank", type=int, required=True)
     p.add_argument("--out", type=Path, required=True, help="bases .npz")
-    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a TOML value (all scenes)")
 
     p = sub.add_parser("render", help="re-draw the picture of a result folder")
     p.add_argument("result_dir", type=Path)
@@ -77,15 +82,26 @@ def _estimate(args) -> None:
 
 
 def _train(args) -> None:
+    from fenics_elasto.meshing import atlas_surfaces
     from fenics_elasto.objective import InverseProblem
-    from fenics_elasto.reduction import train_bases
+    from fenics_elasto.reduction import train_atlas_bases, train_bases
     from fenics_elasto.render import plot_variance
     from fenics_elasto.scene import load_scene
 
-    scene = load_scene(args.problem, args.set)
-    problem = InverseProblem(scene, target=False)
-    _say(f"train: {len(args.examples)} examples, {problem.force_dofs} force dofs, rank {args.rank}")
-    bases = train_bases(problem, args.examples, args.rank, say=_say)
+    patients = ([[args.problem, *args.examples]] if args.problem else []) + args.patient
+    require(patients, "train: give PROBLEM.toml --examples ..., or --atlas with --patient PROBLEM.toml EXAMPLE...")
+    require(not args.examples or args.problem, "train: --examples belong to a PROBLEM.toml (first argument)")
+    require(len(patients) == 1 or args.atlas, "train: several training scenes need --atlas (their shared mesh)")
+    for problem, *examples in patients:
+        require(examples, f"train: no examples given for {problem}")
+    problems = [(InverseProblem(load_scene(p, args.set), target=False), examples) for p, *examples in patients]
+    count = sum(len(e) for _, e in problems)
+    _say(f"train: {len(problems)} scene(s), {count} examples, {problems[0][0].force_dofs} force dofs, rank {args.rank}")
+    if args.atlas:
+        atlas = atlas_surfaces(args.atlas, problems[0][0].scene.loaded)
+        bases = train_atlas_bases(atlas, problems, args.rank, say=_say)
+    else:
+        bases = train_bases(*problems[0], args.rank, say=_say)
     if MPI.COMM_WORLD.rank == 0:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         bases.save(args.out)

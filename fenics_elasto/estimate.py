@@ -366,7 +366,7 @@ def reduced_basis(problem: InverseProblem) -> np.ndarray | None:
     require(not unknown, f"{scene.path}: [reduction]: unknown key(s) {sorted(unknown)}")
     rank = table.get("rank")
     require(rank is None or (isinstance(rank, int) and rank >= 1), f"{scene.path}: reduction.rank must be an integer >= 1")
-    return load_bases(scene.path.parent / table["bases"], problem, rank).W
+    return load_bases(scene.path.parent / table["bases"], problem, rank)
 
 
 def _title(result: dict) -> str:

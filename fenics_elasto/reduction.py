@@ -30,15 +30,42 @@ from fenics_elasto.surface import Target, quadratic_edges, read_surface, triangl
 class Bases:
     W: np.ndarray  # (force_dofs, r) orthonormal columns
     variance: np.ndarray  # explained variance ratio of each column
-    loaded_coords: np.ndarray  # (n_loaded, gdim) the loaded nodes they belong to
+    loaded_coords: np.ndarray  # (n_loaded, gdim) the loaded nodes they belong to (atlas nodes if atlas)
     examples: int
+    atlas: dict | None = None  # group -> (points, triangles): W is in atlas numbering
 
     def truncated(self, rank: int) -> "Bases":
         require(1 <= rank <= self.W.shape[1], f"rank {rank} outside 1..{self.W.shape[1]} (the trained bases)")
-        return Bases(self.W[:, :rank], self.variance[:rank], self.loaded_coords, self.examples)
+        return Bases(self.W[:, :rank], self.variance[:rank], self.loaded_coords, self.examples, self.atlas)
 
     def save(self, path: Path) -> None:
-        np.savez(path, W=self.W, variance=self.variance, loaded_coords=self.loaded_coords, examples=self.examples)
+        surfaces = {}
+        for g, (points, triangles) in (self.atlas or {}).items():
+            surfaces[f"atlas_points_{g}"], surfaces[f"atlas_triangles_{g}"] = points, triangles
+        np.savez(path, W=self.W, variance=self.variance, loaded_coords=self.loaded_coords, examples=self.examples,
+                 atlas_groups=np.array(list(self.atlas or {}), dtype=str), **surfaces)
+
+    @staticmethod
+    def read(path: Path) -> "Bases":
+        require(path.is_file(), f"{path}: no such bases file")
+        try:
+            data = np.load(path)
+            groups = data["atlas_groups"].tolist() if "atlas_groups" in data else []
+            atlas = {g: (data[f"atlas_points_{g}"], data[f"atlas_triangles_{g}"]) for g in groups}
+            return Bases(data["W"], data["variance"], data["loaded_coords"], int(data["examples"]), atlas or None)
+        except (OSError, KeyError, ValueError) as err:
+            raise UserError(f"{path}: not a bases file from `fenics-elasto train` ({err})") from None
+
+    def on(self, problem: InverseProblem) -> np.ndarray:
+        """W on this problem's loaded nodes: the atlas numbering undone (the patient's
+        mesh must be built around the atlas), or the same nodes checked."""
+        if self.atlas is not None:
+            return from_atlas(self.W, atlas_order(problem, self.atlas))
+        coords = problem.loaded.gather(problem.loaded.coords)
+        same = self.loaded_coords.shape == coords.shape and np.allclose(self.loaded_coords, coords, atol=1e-9)
+        require(same, f"the bases were trained on other loaded nodes ({len(self.loaded_coords)} nodes) than "
+                      f"{problem.scene.path.name}'s ({len(coords)}); train them on this mesh or around an atlas")
+        return self.W
 
 
 def pca(examples: np.ndarray, rank: int) -> tuple[np.ndarray, np.ndarray]:
@@ -80,19 +107,13 @@ def train_bases(problem: InverseProblem, example_paths, rank: int, say=print) ->
     return Bases(W, variance, coords, len(example_paths))
 
 
-def load_bases(path: Path, problem: InverseProblem, rank: int | None) -> Bases:
-    """Bases from ``train``, checked against this scene's loaded nodes."""
-    require(path.is_file(), f"{path}: no such bases file")
+def load_bases(path: Path, problem: InverseProblem, rank: int | None) -> np.ndarray:
+    """W of bases from ``train`` on this scene's loaded nodes (refused if they do not fit)."""
+    bases = Bases.read(path)
     try:
-        data = np.load(path)
-        bases = Bases(data["W"], data["variance"], data["loaded_coords"], int(data["examples"]))
-    except (OSError, KeyError, ValueError) as err:
-        raise UserError(f"{path}: not a bases file from `fenics-elasto train` ({err})") from None
-    coords = problem.loaded.gather(problem.loaded.coords)
-    same = bases.loaded_coords.shape == coords.shape and np.allclose(bases.loaded_coords, coords, atol=1e-9)
-    require(same, f"{path}: the bases were trained on other loaded nodes ({len(bases.loaded_coords)} nodes) "
-                  f"than this scene's ({len(coords)}); train them on this mesh")
-    return bases.truncated(rank or bases.W.shape[1])
+        return bases.truncated(rank or bases.W.shape[1]).on(problem)
+    except UserError as err:
+        raise UserError(f"{path}: {err}") from None
 
 
 # --------------------------------------------------------------------------- atlas
@@ -180,9 +201,5 @@ def train_atlas_bases(atlas: dict, patients, rank: int, say=print) -> Bases:
     data = np.concatenate(columns, axis=1)
     W, variance = pca(data, min(rank, data.shape[1]))
     scene = patients[0][0].scene
-    return Bases(W, variance, atlas_nodes({g: atlas[g] for g in scene.loaded}, scene.degree), data.shape[1])
-
-
-def bases_for_patient(bases: Bases, atlas: dict, patient: InverseProblem) -> np.ndarray:
-    """Atlas-numbered bases on a patient (built around the atlas) who need not have been in training."""
-    return from_atlas(bases.W, atlas_order(patient, atlas))
+    loaded = {g: atlas[g] for g in scene.loaded}
+    return Bases(W, variance, atlas_nodes(loaded, scene.degree), data.shape[1], loaded)

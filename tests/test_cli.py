@@ -125,3 +125,16 @@ def test_no_traceback_from_the_console_script(tmp_path):
     proc = run_cli("simulate", tmp_path / "absent.toml", "--out", tmp_path)
     assert proc.returncode == 2
     assert "Traceback" not in proc.stderr and proc.stderr.strip().startswith("error:")
+
+
+def test_train_arguments_that_cannot_work(tmp_path, capsys, scenes):
+    """Several training scenes without their shared atlas, a scene without examples,
+    examples without a scene: one-line errors before any work."""
+    p = scenes["cantilever"]
+    _expect_user_error(capsys, ["train", "--rank", 2, "--out", tmp_path / "b.npz"], "--patient")
+    _expect_user_error(capsys, ["train", p, "--examples", tmp_path, "--patient", p, tmp_path, "--rank", 2,
+                                "--out", tmp_path / "b.npz"], "--atlas")
+    _expect_user_error(capsys, ["train", "--atlas", tmp_path / "a.msh", "--patient", p, "--rank", 2,
+                                "--out", tmp_path / "b.npz"], "no examples", p.name)
+    _expect_user_error(capsys, ["train", "--examples", tmp_path, "--patient", p, tmp_path, "--rank", 2,
+                                "--out", tmp_path / "b.npz"], "--examples")
