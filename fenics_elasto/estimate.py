@@ -14,6 +14,12 @@ Inner solvers (``[optimizer] inner``):
 - ``lbfgs``: L-BFGS over the forces in boundary-displacement coordinates (the forces
   preconditioned by the Dirichlet-to-Neumann map), two back-solves per iteration.
 - ``lbfgs-forces``: L-BFGS over the raw nodal forces, as in the paper.
+
+With reduced bases the outer loop runs on a surrogate (``surrogate.py``, on by
+default): the scan's solves span the mode fields of every material value, the
+materials are optimised on that reduced-basis response (dense algebra, no
+factorization), and only its optimum is solved in full -- until the optimum stops
+moving. The result is always a full solve.
 """
 
 from __future__ import annotations
@@ -43,6 +49,7 @@ class Options:
     inner_tol: float = 1e-6  # relative decrease of Phi that ends the inner loop
     full_gn_limit: int = 1500  # largest full force space for which "auto" picks Gauss-Newton
     anchor: float = 1e-4  # Gauss-Newton: pull towards the surface-matched start (see _gauss_newton)
+    surrogate: bool = True  # reduced bases: outer loop on the reduced-basis response in the materials
 
     @classmethod
     def from_scene(cls, scene) -> "Options":
@@ -80,6 +87,7 @@ class NestedEstimator:
         self.progress = Progress()
         self.inner_iterations = 0
         self.outer_iterations = 0
+        self.surrogate_evaluations = 0
         inner = self.options.inner
         if inner == "auto":
             small = problem.force_dofs <= self.options.full_gn_limit
@@ -91,8 +99,14 @@ class NestedEstimator:
         self.evaluate = problem.evaluate_forces if inner == "lbfgs-forces" else problem.evaluate_displacement
         self.control_scale = 1.0
         self.phi_scale = 1.0
+        self.initial_phi = None  # Phi* at the initial materials
         self.anchor = None  # reduced coordinates of the surface-matched boundary displacement
         self.seen = []  # (log E, nu), controls, evaluation of every Phi* solved
+        self.surrogate = None
+        if basis is not None and self.options.surrogate:
+            from fenics_elasto.surrogate import MaterialSurrogate
+
+            self.surrogate = MaterialSurrogate(problem, basis)
 
     # --- variables: log E and nu
 
@@ -128,7 +142,7 @@ class NestedEstimator:
 
     def solve_inner(self, theta, controls0) -> tuple[np.ndarray, Evaluation, int]:
         if self.inner == "gauss-newton":
-            controls, nit = self._gauss_newton(theta, controls0)
+            controls, nit = self._gauss_newton(self.response(theta), controls0)
             ev = self.problem.evaluate_displacement(theta, self.boundary(controls), "both")
         else:
             controls, ev, nit = self._lbfgs(theta, controls0)
@@ -150,7 +164,15 @@ class NestedEstimator:
         ev = cache.get(res.x.tobytes()) or self.evaluate(theta, res.x * self.control_scale, "both")
         return res.x * self.control_scale, ev, res.nit
 
-    def _gauss_newton(self, theta, q):
+    def response(self, theta) -> np.ndarray:
+        """J(theta) solved in full (one factorization); a snapshot for the surrogate."""
+        if self.surrogate is None:
+            return self.problem.response(theta, self.basis)
+        X = self.problem.response_block(theta, self.basis)
+        self.surrogate.add(theta, X)
+        return self.problem.matched_rows(X)
+
+    def _gauss_newton(self, J, q):
         """Levenberg-Marquardt on the exact closest-feature curvature; x(q) = x0 + J q exactly.
 
         Surface distances do not see nodes sliding along the target, so a faint pull
@@ -158,7 +180,6 @@ class NestedEstimator:
         the unseen, tangential part of the boundary motion where matching put it.
         """
         p = self.problem
-        J = p.response(theta, self.basis)
         n, gdim, r = J.shape
         flat = J.reshape(n * gdim, r)
         q0 = self.anchor if self.anchor is not None else q.copy()
@@ -229,11 +250,19 @@ class NestedEstimator:
         controls0 = self.initial_controls(theta0, d0)
         self.anchor = controls0 if self.inner == "gauss-newton" else None
         self.control_scale = max(float(np.sqrt(np.mean(controls0**2))), 1e-300)
-        self.phi_scale = max(self.evaluate(theta0, self.boundary(controls0)).phi, 1e-300)
-        candidates = [theta0] + self.scan_points()
+        # With the surrogate the initial materials need no solve of their own: the
+        # scan's snapshots give Phi* there too.
+        candidates = self.scan_points() if self.surrogate else [theta0] + self.scan_points()
+        if self.surrogate is None:
+            self.phi_scale = max(self.evaluate(theta0, self.boundary(controls0)).phi, 1e-300)
         self.say(f"scan of {len(candidates)} material values (start: surface matching; inner: {self.inner})")
         for theta in candidates:
             self.phi_star(theta, controls0 if theta is theta0 else self.initial_controls(theta, d0), "scan")
+        if self.surrogate is not None:
+            self.phi_scale = max(self.progress.best[0], 1e-300)
+            self.initial_phi = self.surrogate_phi(self.to_s(theta0), {"q": controls0})[0] * self.phi_scale
+            return self._outer_on_surrogate()
+        self.initial_phi = self.progress.history[0]["phi"]
         _, theta_best, controls_best = self.progress.best
         warm = {"controls": controls_best}
 
@@ -245,7 +274,7 @@ class NestedEstimator:
             return ev.phi / self.phi_scale, grad_s / self.phi_scale
 
         last = {"s": self.to_s(theta_best)}
-        xtol = self.options.outer_xtol * np.where(self.log_scale, 1.0, 0.1)
+        xtol = self.xtol()
 
         def count(intermediate_result):
             self.outer_iterations += 1
@@ -255,9 +284,44 @@ class NestedEstimator:
                 raise StopIteration  # more digits of E would cost factorizations, not accuracy
 
         self.say("outer L-BFGS-B over the materials (envelope gradient)")
-        bounds = [tuple(self.to_s(np.array(b))) for b in p.bounds()]
-        minimize(objective, self.to_s(theta_best), jac=True, method="L-BFGS-B", bounds=bounds, callback=count,
+        minimize(objective, self.to_s(theta_best), jac=True, method="L-BFGS-B", bounds=self.s_bounds(), callback=count,
                  options={"maxiter": self.options.outer_maxiter, "ftol": 1e-10, "gtol": 1e-7})
+
+    def xtol(self) -> np.ndarray:
+        return self.options.outer_xtol * np.where(self.log_scale, 1.0, 0.1)
+
+    def s_bounds(self) -> list:
+        return [tuple(self.to_s(np.array(b))) for b in self.problem.bounds()]
+
+    # --- the outer loop on the reduced-basis response in the materials
+
+    def surrogate_phi(self, s, warm):
+        """Phi*(theta) and its envelope gradient in s from the surrogate's J(theta): no FE solve."""
+        theta = self.to_theta(s)
+        J, dJ = self.surrogate.response(theta)
+        q, _ = self._gauss_newton(J, warm["q"])
+        warm["q"] = q
+        self.surrogate_evaluations += 1
+        n, gdim, r = J.shape
+        residual = self.problem.target.residual(self.problem.matched_coords + (J.reshape(-1, r) @ q).reshape(n, gdim))
+        grad_theta = np.array([np.sum(residual * (dJk @ q)) for dJk in dJ])
+        phi = 0.5 * float(np.sum(residual**2))
+        return phi / self.phi_scale, grad_theta * np.where(self.log_scale, theta, 1.0) / self.phi_scale
+
+    def _outer_on_surrogate(self):
+        """Optimise the materials on the surrogate, solve its optimum in full (a new
+        snapshot), repeat until the optimum lands where a full solve already is."""
+        self.say(f"outer L-BFGS-B on the reduced-basis response in the materials ({self.surrogate.size} directions)")
+        xtol = self.xtol()
+        for _ in range(self.options.outer_maxiter):
+            _, theta_best, controls_best = self.progress.best
+            warm = {"q": controls_best}
+            res = minimize(self.surrogate_phi, self.to_s(theta_best), args=(warm,), jac=True, method="L-BFGS-B",
+                           bounds=self.s_bounds(), options={"maxiter": 100, "ftol": 1e-12, "gtol": 1e-9})
+            self.outer_iterations += 1
+            if any(np.all(np.abs(res.x - s_seen) < xtol) for s_seen, _, _ in self.seen):
+                return
+            self.phi_star(self.to_theta(res.x), warm["q"], "outer")
 
     def final(self):
         """(theta, forces, evaluation) of the best point seen."""
@@ -307,10 +371,11 @@ def estimate(problem: InverseProblem, options: Options | None = None, say=print,
     result = {
         "materials": {m.name: {"E": float(E[i]), "nu": float(nu[i])} for i, m in enumerate(scene.materials)},
         "estimated": [f"{m}.{k}" for m, k in problem.estimated],
-        "objective": {"undeformed": phi_undeformed, "initial": estimator.progress.history[0]["phi"], "final": final.phi},
+        "objective": {"undeformed": phi_undeformed, "initial": estimator.initial_phi if estimator.initial_phi is not None else estimator.progress.history[0]["phi"], "final": final.phi},
         "surface_distance": problem.surface_distance(final.residual),
         "iterations": {"outer": estimator.outer_iterations, "inner": estimator.inner_iterations,
-                       "evaluations": len(estimator.progress.history)},
+                       "evaluations": len(estimator.progress.history),
+                       "surrogate_evaluations": estimator.surrogate_evaluations},
         "factorizations": problem.model.factorizations,
         "solves": {"forward": problem.forward_solves, "adjoint": problem.adjoint_solves},
         "dofs": problem.model.num_dofs,

@@ -14,6 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from petsc4py import PETSc
+
 from fenics_elasto.elasticity import ElasticModel, lame_jacobian
 from fenics_elasto.errors import require
 from fenics_elasto.scene import Scene
@@ -123,7 +125,7 @@ class InverseProblem:
         if gradient:
             w, _ = self._adjoint(theta, ev, self.clamped)
             ev.grad_controls = self.on_loaded(w)  # P^T w
-            ev.grad_theta = self.material_gradient(E, nu, ev.u, w)
+            ev.grad_theta = self.material_gradient(theta, ev.u, w)
         return ev
 
     # --- preconditioned coordinates: the loaded-boundary displacement d the forces produce
@@ -146,11 +148,15 @@ class InverseProblem:
             Kw = self.model.function("Kw")
             self.model.apply_stiffness(E, nu, w.x.petsc_vec, Kw.x.petsc_vec)
             ev.grad_controls = self.on_loaded(r) - self.on_loaded(Kw)
-            ev.grad_theta = self.material_gradient(E, nu, ev.u, w)
+            ev.grad_theta = self.material_gradient(theta, ev.u, w)
         return ev
 
     def response(self, theta, basis: np.ndarray | None = None) -> np.ndarray:
-        """J (n_matched, gdim, r): matched-node displacement per unit of each boundary mode.
+        """J (n_matched, gdim, r): matched-node displacement per unit of each boundary mode."""
+        return self.matched_rows(self.response_block(theta, basis))
+
+    def response_block(self, theta, basis: np.ndarray | None = None) -> np.ndarray:
+        """X (owned DOFs, r): the displacement field of each boundary mode.
 
         The loaded boundary moves by d = W q (W: force_dofs x r, orthonormal columns;
         None means the identity, the full space) and the interior follows from K_D u = 0,
@@ -161,25 +167,32 @@ class InverseProblem:
         model = self.model
         E, nu = self.materials(theta)
         factor = model.factorize(E, nu, self.clamped_boundary)
-        W = np.eye(self.force_dofs) if basis is None else basis
-        r = W.shape[1]
-        rows = self.loaded.dofs(model.bs).ravel()
-        W_local = self.loaded.local(W.reshape(self.loaded.total, self.gdim * r)).reshape(-1, r)
-        G = model.dense(r)
-        G.getDenseArray()[rows] = W_local
+        G = self.lift(basis)
         K = model.stiffness(E, nu)
         rhs = K.matMult(G)
         block = rhs.getDenseArray()
         block *= -1.0
-        block[self.clamped] = 0.0
-        block[rows] = W_local
-        X = model.dense(r)
+        block[self.clamped_boundary] = G.getDenseArray()[self.clamped_boundary]
+        X = model.dense(G.getSize()[1])
         factor.solve_many(rhs, X)
-        matched_rows = self.matched.dofs(model.bs).ravel()
-        J = X.getDenseArray()[matched_rows].reshape(len(self.matched), self.gdim, r)
+        out = X.getDenseArray().copy()
         for M in (G, K, rhs, X):
             M.destroy()
-        return self.matched.gather(J)
+        return out
+
+    def lift(self, basis: np.ndarray | None = None) -> PETSc.Mat:
+        """The boundary modes as fields: W on the loaded DOFs, zero elsewhere (dense, owned rows)."""
+        W = np.eye(self.force_dofs) if basis is None else basis
+        r = W.shape[1]
+        G = self.model.dense(r)
+        rows = self.loaded.dofs(self.model.bs).ravel()
+        G.getDenseArray()[rows] = self.loaded.local(W.reshape(self.loaded.total, self.gdim * r)).reshape(-1, r)
+        return G
+
+    def matched_rows(self, X: np.ndarray) -> np.ndarray:
+        """(n_matched, gdim, k) global: the matched nodes' rows of owned-DOF columns X."""
+        rows = self.matched.dofs(self.model.bs).ravel()
+        return self.matched.gather(X[rows].reshape(len(self.matched), self.gdim, -1))
 
     def reaction_forces(self, theta, u) -> np.ndarray:
         """F = P^T K(theta) u: the loaded-node forces that produce u."""
@@ -188,24 +201,35 @@ class InverseProblem:
         self.model.apply_stiffness(E, nu, u.x.petsc_vec, Ku.x.petsc_vec)
         return self.on_loaded(Ku)
 
-    def material_gradient(self, E, nu, u, w) -> np.ndarray:
-        """-w^T dK/dtheta_k u for each estimated constant, from the cached A_m, B_m."""
+    def stiffness_terms(self) -> list:
+        """K(theta) = sum_j c_j M_j over M = (A_0, B_0, A_1, B_1, ...), the cached matrices."""
+        A, B = self.model.material_matrices
+        return [M for pair in zip(A, B) for M in pair]
+
+    def stiffness_coefficients(self, theta) -> tuple[np.ndarray, np.ndarray]:
+        """(c, dc/dtheta): c_j of ``stiffness_terms`` (mu_m, lambda_m interleaved), and
+        their derivatives (n_estimated, 2 n_materials)."""
+        E, nu = self.materials(theta)
+        mu, lam = self.model.lame_parameters(E, nu)
         dmu_dE, dmu_dnu, dlam_dE, dlam_dnu = lame_jacobian(E, nu, self.scene.plane)
         names = [m.name for m in self.scene.materials]
+        dc = np.zeros((len(self.estimated), 2 * len(names)))
+        for k, (material, key) in enumerate(self.estimated):
+            m = names.index(material)
+            dc[k, 2 * m : 2 * m + 2] = (dmu_dE[m], dlam_dE[m]) if key == "E" else (dmu_dnu[m], dlam_dnu[m])
+        return np.stack([mu, lam], axis=1).ravel(), dc
+
+    def material_gradient(self, theta, u, w) -> np.ndarray:
+        """-w^T dK/dtheta_k u for each estimated constant, from the cached matrices."""
+        _, dc = self.stiffness_coefficients(theta)
         uv, wv = u.x.petsc_vec, w.x.petsc_vec
         tmp = uv.duplicate()
-        A, B = self.model.material_matrices
-        grad = []
-        for material, key in self.estimated:
-            m = names.index(material)
-            A[m].mult(uv, tmp)
-            wAu = wv.dot(tmp)
-            B[m].mult(uv, tmp)
-            wBu = wv.dot(tmp)
-            dmu, dlam = (dmu_dE[m], dlam_dE[m]) if key == "E" else (dmu_dnu[m], dlam_dnu[m])
-            grad.append(-(dmu * wAu + dlam * wBu))
+        products = []
+        for M in self.stiffness_terms():
+            M.mult(uv, tmp)
+            products.append(wv.dot(tmp))
         tmp.destroy()
-        return np.array(grad)
+        return -dc @ np.array(products)
 
     def surface_distance(self, residual: np.ndarray) -> dict:
         d = np.linalg.norm(residual, axis=1)

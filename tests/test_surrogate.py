@@ -1,0 +1,97 @@
+"""The reduced-basis response in the materials (surrogate.py): exact at its snapshots,
+converging between them, exact derivatives, and an estimate that agrees with the one
+solved in full at every material value while factorizing less."""
+
+import numpy as np
+import pytest
+
+from fenics_elasto.estimate import Options, estimate
+from fenics_elasto.meshing import build_scene
+from fenics_elasto.objective import InverseProblem
+from fenics_elasto.scene import load_scene
+from fenics_elasto.surrogate import MaterialSurrogate
+from targets import letter_case
+
+
+@pytest.fixture(scope="module")
+def inclusion(tmp_path_factory):
+    """Two materials, two estimated constants (inclusion E, matrix nu), random modes."""
+    source = build_scene("inclusion", tmp_path_factory.mktemp("surrogate") / "inclusion")
+    scene = load_scene(source, ["materials.matrix.nu={estimate=true, initial=0.3, bounds=[0.1, 0.45]}"])
+    problem = InverseProblem(scene, target=False)
+    W = np.linalg.qr(np.random.default_rng(0).standard_normal((problem.force_dofs, 4)))[0]
+    return problem, W
+
+
+def at(problem, E, nu):
+    """theta in the problem's order of estimated constants (inclusion E, matrix nu)."""
+    return np.array([E if key == "E" else nu for _, key in problem.estimated])
+
+
+def relative_error(J, truth):
+    return np.linalg.norm(J - truth) / np.linalg.norm(truth)
+
+
+def energy_norm(problem, theta, X):
+    """sqrt(trace X^T K(theta) X) of owned-row columns X (serial)."""
+    K = problem.model.stiffness(*problem.materials(theta))
+    return float(np.sqrt(sum(K.getValues(range(len(X)), range(len(X))) @ x @ x for x in X.T)))
+
+
+def test_exact_at_snapshots_and_converging_between(inclusion):
+    """Galerkin on nested spaces: the energy-norm error at a probe never grows as
+    snapshots are added (a 3 x 3 design over log E and nu) and ends small."""
+    problem, W = inclusion
+    surrogate = MaterialSurrogate(problem, W)
+    probe = at(problem, 20.0, 0.35)
+    truth = problem.response_block(probe, W)
+    errors = []
+    for E in (3.0, 30.0, 300.0):
+        for nu in (0.15, 0.3, 0.43):
+            theta = at(problem, E, nu)
+            surrogate.add(theta, problem.response_block(theta, W))
+            J, _ = surrogate.response(theta)
+            assert relative_error(J, problem.response(theta, W)) < 1e-8  # round-off of up to 36 directions
+            assert surrogate.residual(theta) < 1e-8
+            errors.append(energy_norm(problem, probe, surrogate.fields(probe) - truth))
+    errors = np.array(errors) / energy_norm(problem, probe, truth)
+    print("relative energy error at the probe after each snapshot:", errors)
+    assert np.all(np.diff(errors) <= 1e-9) and errors[-1] < 1e-2, errors
+    assert relative_error(surrogate.response(probe)[0], problem.matched_rows(truth)) < 3e-3  # measured 1.0e-3
+    assert surrogate.residual(probe) < 1e-2  # the indicator is small where the error is
+
+
+def test_derivatives_are_those_of_the_surrogate(inclusion):
+    problem, W = inclusion
+    surrogate = MaterialSurrogate(problem, W)
+    for E, nu in ((5.0, 0.2), (200.0, 0.42), (30.0, 0.3)):
+        surrogate.add(at(problem, E, nu), problem.response_block(at(problem, E, nu), W))
+    theta = at(problem, 17.0, 0.33)
+    _, dJ = surrogate.response(theta)
+    for k, h in enumerate(1e-4 * theta):
+        step = np.eye(2)[k] * h
+        central = (surrogate.response(theta + step)[0] - surrogate.response(theta - step)[0]) / (2 * h)
+        assert relative_error(dJ[k], central) < 1e-6, k
+
+
+def test_estimate_on_the_surrogate_equals_the_full_outer_loop(tmp_path):
+    """Letter A, nu from a finer-mesh target through random-plus-answer bases: the
+    surrogate's outer loop finds the same nu as solving every material value, with
+    fewer factorizations."""
+    source, target = letter_case(tmp_path, 0.25, 0.35)
+    problem = InverseProblem(load_scene(source, [f"target.surface='{target}'"]))
+    full, u, _ = estimate(problem, say=lambda *_: None)
+    rng = np.random.default_rng(1)
+    W = np.linalg.qr(np.c_[problem.on_loaded(u), rng.standard_normal((problem.force_dofs, 5))])[0]
+    plain = Options.from_scene(problem.scene)
+    plain.surrogate = False
+    solved = estimate(InverseProblem(problem.scene), options=plain, say=lambda *_: None, basis=W)[0]
+    fast = estimate(InverseProblem(problem.scene), say=lambda *_: None, basis=W)[0]
+    nu_solved, nu_fast = solved["materials"]["letter"]["nu"], fast["materials"]["letter"]["nu"]
+    print("nu every value solved", nu_solved, solved["factorizations"], "on the surrogate", nu_fast,
+          fast["factorizations"])
+    assert abs(nu_fast - nu_solved) < 1e-3 * nu_solved
+    assert abs(nu_fast - 0.35) < 0.02
+    assert fast["factorizations"] < solved["factorizations"]
+    assert fast["objective"]["final"] <= 1.01 * solved["objective"]["final"]
+    assert fast["iterations"]["surrogate_evaluations"] > 0
