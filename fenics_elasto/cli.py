@@ -23,6 +23,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="phantom patient variation (0 = nominal)")
     p.add_argument("--atlas", type=Path, default=None,
                    help="phantom: mesh around this mesh's bladder and rectum (shared loaded nodes)")
+    p.add_argument("--organ-size", type=float, default=None,
+                   help="phantom: element size at bladder and rectum, relative to --size (default 0.35)")
+    p.add_argument("--prostate-size", type=float, default=None,
+                   help="phantom: element size at the prostate, relative to --size (default 0.22)")
 
     for name, text in (("simulate", "forward solve with prescribed loads/displacements"),
                        ("estimate", "estimate materials and boundary forces from a target")):
@@ -53,12 +57,17 @@ def _parser() -> argparse.ArgumentParser:
 def _mesh(args) -> None:
     from fenics_elasto.meshing import atlas_surfaces, build_scene
 
-    path = None
-    if MPI.COMM_WORLD.rank == 0:
-        require(args.atlas is None or args.name == "prostate-phantom", "--atlas: only prostate-phantom takes an atlas")
-        atlas = atlas_surfaces(args.atlas) if args.atlas else None
-        path = build_scene(args.name, args.out, args.size, args.seed, atlas)
-    path = MPI.COMM_WORLD.bcast(path, root=0)
+    path, error = None, None
+    if MPI.COMM_WORLD.rank == 0:  # gmsh meshes on one rank; its verdict goes to all
+        try:
+            require(args.atlas is None or args.name == "prostate-phantom", "--atlas: only prostate-phantom takes an atlas")
+            atlas = atlas_surfaces(args.atlas) if args.atlas else None
+            path = build_scene(args.name, args.out, args.size, args.seed, atlas,
+                               organ_size=args.organ_size, prostate_size=args.prostate_size)
+        except UserError as err:
+            error = str(err)
+    path, error = MPI.COMM_WORLD.bcast((path, error), root=0)
+    require(error is None, error)
     _say(f"wrote {path}")
 
 

@@ -118,10 +118,11 @@ def polydata(points, cells, displacement, deformed: bool = True):
     return grid.clean(tolerance=0.0) if width < 4 else grid.clean(tolerance=0.0, remove_unused_points=True)
 
 
-def surface(u: fem.Function, facets: np.ndarray, deformed: bool = True):
-    """The (deformed) surface of the given facets, on rank 0 (None elsewhere)."""
+def surface(u: fem.Function, facets: np.ndarray, deformed: bool = True, pieces: int = 4):
+    """The (deformed) surface of the given facets, on rank 0 (None elsewhere); curved
+    facets as ``pieces`` x ``pieces`` flat ones."""
     mesh = u.function_space.mesh
-    data = gather_entities(u, mesh.topology.dim - 1, facets)
+    data = gather_entities(u, mesh.topology.dim - 1, facets, pieces)
     return None if data is None else polydata(*data, deformed=deformed)
 
 
@@ -158,13 +159,15 @@ def _json_default(value):
     raise TypeError(type(value))
 
 
-def write_matched_surfaces(out: Path, scene, u: fem.Function) -> None:
+def write_matched_surfaces(out: Path, scene, u: fem.Function, pieces: int = 4) -> None:
     """``surface_<group>.vtp`` per matched group and ``surface.vtp`` with all (deformed).
 
-    These are ready-made targets for ``estimate``.
+    These are ready-made targets for ``estimate``. ``pieces``: a curved facet is
+    written as pieces x pieces flat triangles; their sag is an error of the target
+    (Table-1 case, target h = 1.3: E = 51.93 from 4 x 4 pieces, 51.66 from 8 x 8).
     """
     out = Path(out)
-    matched = [surface(u, scene.facet_groups[g]) for g in scene.matched]
+    matched = [surface(u, scene.facet_groups[g], pieces=pieces) for g in scene.matched]
     if scene.comm.rank == 0:
         import pyvista as pv
 

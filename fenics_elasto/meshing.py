@@ -316,7 +316,13 @@ def phantom_organs(seed: int) -> dict:
     return organs
 
 
-PROSTATE_SIZE = 0.22  # element size at the prostate, relative to --size
+# Element sizes near the organs, relative to --size. The prostate's stiffness shows as
+# ~1e-3 cm of surface motion per 10 % of E, carried to it through the tissue from the
+# moving bladder and rectum walls, so the estimate's accuracy is set by both: against
+# a converged target E = 50 comes out +4.6 % (these defaults), +2.1 % (organs 0.25),
+# +0.7 % (organs 0.2) at h = 1.6 (benchmarks/convergence.py).
+ORGAN_SIZE = 0.35
+PROSTATE_SIZE = 0.22
 
 
 def _graded_size(field, faces: list[int], size_min: float, size_max: float) -> int:
@@ -336,8 +342,10 @@ def _inside(box, outer, tol=1e-6) -> bool:
     return all(box[i] >= outer[i] - tol and box[i + 3] <= outer[i + 3] + tol for i in range(3))
 
 
-def build_prostate_phantom(out: Path, size: float | None = None, seed: int = 0, atlas: dict | None = None) -> Path:
-    """The pelvis phantom of patient ``seed``.
+def build_prostate_phantom(out: Path, size: float | None = None, seed: int = 0, atlas: dict | None = None,
+                           organ_size: float = ORGAN_SIZE, prostate_size: float = PROSTATE_SIZE) -> Path:
+    """The pelvis phantom of patient ``seed``; element size ``size`` (cm) away from the
+    organs, ``organ_size`` and ``prostate_size`` times it at their surfaces.
 
     With ``atlas`` (group -> (points, triangles), e.g. another phantom's bladder and
     rectum from ``read_surfaces``) those surfaces are not meshed afresh: the atlas
@@ -403,8 +411,8 @@ def build_prostate_phantom(out: Path, size: float | None = None, seed: int = 0, 
         field = gmsh.model.mesh.field
         near = field.add("Min")
         field.setNumbers(near, "FieldsList", [
-            _graded_size(field, faces["bladder"] + faces["rectum"], 0.35 * h, 1.6 * h),
-            _graded_size(field, prostate_faces, PROSTATE_SIZE * h, 1.6 * h)])
+            _graded_size(field, faces["bladder"] + faces["rectum"], organ_size * h, 1.6 * h),
+            _graded_size(field, prostate_faces, prostate_size * h, 1.6 * h)])
         field.setAsBackgroundMesh(near)
         gmsh.option.setNumber("Mesh.MeshSizeExtendFromBoundary", 0)
         gmsh.option.setNumber("Mesh.MeshSizeFromPoints", 0)
@@ -435,11 +443,17 @@ def _write_toml(out: Path, text: str) -> Path:
     return path
 
 
-def build_scene(name: str, out, size: float | None = None, seed: int = 0, atlas: dict | None = None) -> Path:
+def build_scene(name: str, out, size: float | None = None, seed: int = 0, atlas: dict | None = None,
+                **detail) -> Path:
     """Write the named built-in scene's mesh and ``problem.toml`` into ``out``
-    (``atlas``: see build_prostate_phantom)."""
+    (``atlas``, ``detail`` = organ_size / prostate_size: see build_prostate_phantom)."""
     require(name in SCENES, f"unknown scene {name!r}; choose one of {', '.join(SCENES)}")
     require(size is None or size > 0, f"--size must be > 0, got {size}")
+    detail = {k: v for k, v in detail.items() if v is not None}
+    flags = {key: "--" + key.replace("_", "-") for key in detail}
+    require(not detail or name == "prostate-phantom", f"{', '.join(flags.values())}: only prostate-phantom takes these")
+    for key, value in detail.items():
+        require(0 < value <= 1, f"{flags[key]} must be in (0, 1] (relative to --size), got {value}")
     out = Path(out)
     if name == "letter-a":
         return build_letter_a(out, size)
@@ -447,4 +461,4 @@ def build_scene(name: str, out, size: float | None = None, seed: int = 0, atlas:
         return build_cantilever(out, size)
     if name == "inclusion":
         return build_inclusion(out, size)
-    return build_prostate_phantom(out, size, seed, atlas)
+    return build_prostate_phantom(out, size, seed, atlas, **detail)

@@ -102,6 +102,20 @@ def test_nan_coordinates(scenes, tmp_path, capsys):
 def test_unknown_scene_and_bad_override(tmp_path, capsys):
     _expect_user_error(capsys, ["mesh", "teapot", "--out", tmp_path], "teapot")
     _expect_user_error(capsys, ["mesh", "letter-a", "--out", tmp_path, "--size", "-1"], "--size")
+    _expect_user_error(capsys, ["mesh", "letter-a", "--out", tmp_path, "--organ-size", "0.2"], "--organ-size")
+    _expect_user_error(capsys, ["mesh", "prostate-phantom", "--out", tmp_path, "--prostate-size", "0"], "--prostate-size")
+
+
+def test_phantom_organ_detail(tmp_path, scenes):
+    """--organ-size refines the bladder and rectum walls (the loaded boundary)."""
+    from fenics_elasto.meshing import read_surfaces
+
+    assert main(["mesh", "prostate-phantom", "--out", str(tmp_path), "--size", "1.6", "--organ-size", "0.25"]) == 0
+    finer = read_surfaces(tmp_path / "phantom.msh")
+    default = read_surfaces(scenes["prostate-phantom"].parent / "phantom.msh")
+    for group in ("bladder", "rectum"):
+        assert len(finer[group][1]) > 1.5 * len(default[group][1]), group
+    assert abs(len(finer["prostate_surface"][1]) / len(default["prostate_surface"][1]) - 1) < 0.2
 
 
 def test_mesh_around_an_atlas(tmp_path, capsys):
