@@ -319,9 +319,12 @@ class NestedEstimator:
             res = minimize(self.surrogate_phi, self.to_s(theta_best), args=(warm,), jac=True, method="L-BFGS-B",
                            bounds=self.s_bounds(), options={"maxiter": 100, "ftol": 1e-12, "gtol": 1e-9})
             self.outer_iterations += 1
+            theta = self.to_theta(res.x)
+            self.say(f"  surrogate optimum {self._describe(theta)}  (equation residual "
+                     f"{self.surrogate.residual(theta):.1e}, {res.nfev} evaluations)")
             if any(np.all(np.abs(res.x - s_seen) < xtol) for s_seen, _, _ in self.seen):
                 return
-            self.phi_star(self.to_theta(res.x), warm["q"], "outer")
+            self.phi_star(theta, warm["q"], "outer")
 
     def final(self):
         """(theta, forces, evaluation) of the best point seen."""

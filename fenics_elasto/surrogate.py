@@ -11,9 +11,8 @@ with G the boundary modes (W on the loaded DOFs) and V an orthonormal basis of t
 parts X(theta_i) - G of the solves done so far ("snapshots"). All products V^T M_j V and
 V^T M_j G are kept, so J(theta) and dJ/dtheta are small dense algebra, exact at every
 snapshot (Galerkin reproduces a solution that lies in the space). The residual
-K(theta)(G + V a) on the free DOFs says how far from exact it is elsewhere; a snapshot at
-theta_new that is close to a factorized theta_old is computed without factorizing, by
-conjugate gradients preconditioned with that factorization, started from G + V a.
+K(theta)(G + V a) on the free DOFs says how far from exact it is elsewhere. Memory:
+V and M_j V, (1 + 2 x materials) x DOFs x (r x snapshots) numbers.
 """
 
 from __future__ import annotations
