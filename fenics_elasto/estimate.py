@@ -250,19 +250,24 @@ class NestedEstimator:
         controls0 = self.initial_controls(theta0, d0)
         self.anchor = controls0 if self.inner == "gauss-newton" else None
         self.control_scale = max(float(np.sqrt(np.mean(controls0**2))), 1e-300)
-        # With the surrogate the initial materials need no solve of their own: the
-        # scan's snapshots give Phi* there too.
-        candidates = self.scan_points() if self.surrogate else [theta0] + self.scan_points()
-        if self.surrogate is None:
-            self.phi_scale = max(self.evaluate(theta0, self.boundary(controls0)).phi, 1e-300)
-        self.say(f"scan of {len(candidates)} material values (start: surface matching; inner: {self.inner})")
-        for theta in candidates:
-            self.phi_star(theta, controls0 if theta is theta0 else self.initial_controls(theta, d0), "scan")
         if self.surrogate is not None:
+            # The initial materials need no solve of their own: the scan's snapshots give Phi* there too.
+            self._scan(self.scan_points(), theta0, controls0, d0)
             self.phi_scale = max(self.progress.best[0], 1e-300)
             self.initial_phi = self.surrogate_phi(self.to_s(theta0), {"q": controls0})[0] * self.phi_scale
             return self._outer_on_surrogate()
+        self.phi_scale = max(self.evaluate(theta0, self.boundary(controls0)).phi, 1e-300)
+        self._scan([theta0] + self.scan_points(), theta0, controls0, d0)
         self.initial_phi = self.progress.history[0]["phi"]
+        self._outer_solved()
+
+    def _scan(self, candidates, theta0, controls0, d0):
+        self.say(f"scan of {len(candidates)} material values (start: surface matching; inner: {self.inner})")
+        for theta in candidates:
+            self.phi_star(theta, controls0 if theta is theta0 else self.initial_controls(theta, d0), "scan")
+
+    def _outer_solved(self):
+        """L-BFGS-B over the materials, every value solved in full."""
         _, theta_best, controls_best = self.progress.best
         warm = {"controls": controls_best}
 
