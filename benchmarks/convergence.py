@@ -1,6 +1,6 @@
 """How the prostate E estimate converges with the meshes (patient 0, true E = 50 kPa).
 
-    python benchmarks/convergence.py [--out DIR]      # about 12 minutes
+    python benchmarks/convergence.py [--out DIR]      # about 10 minutes
 
 The stiffness signal is tiny (~1e-3 cm of prostate-surface motion per 10 % of E), so
 the estimate is as good as the meshes. Two tables:
@@ -65,12 +65,14 @@ def main():
         start = time.perf_counter()
         targets[size, pieces] = target(out, size, pieces)
         made = time.perf_counter() - start
-        lines.append(row(f"{size:g}, {pieces} (made in {made:.0f} s)", run_case(source, targets[size, pieces], W)))
+        result = run_case(source, targets[size, pieces], W)
+        lines.append(row(f"{size:g}, {pieces} (made in {made:.0f} s)", result))
         print(lines[-1], flush=True)
 
     finest = targets[TARGETS[-1]]
-    lines += ["", header[0].format(f"source: organs, prostate (x h = {SIZE})"), header[1]]
-    for organ, prostate in SOURCES:
+    lines += ["", header[0].format(f"source: organs, prostate (x h = {SIZE})"), header[1],
+              row(f"{ORGAN_SIZE:g}, {PROSTATE_SIZE:g} (the default, as above)", result)]
+    for organ, prostate in SOURCES[1:]:
         source, W = source_with_bases(out, organ, prostate)
         lines.append(row(f"{organ:g}, {prostate:g}", run_case(source, finest, W)))
         print(lines[-1], flush=True)
