@@ -1,6 +1,6 @@
 """Forward-model costs on the prostate phantom at three sizes (P2, serial).
 
-    python benchmarks/forward.py [--sizes 1.6 1.0 0.75] [--repeat 3]
+    python benchmarks/forward.py [--sizes 1.6 1.3 1.0] [--repeat 3]
 
 Prints DOFs, the one-off assembly of the per-material matrices, a direct assembly of
 K, K formed as a linear combination, MUMPS LU and Cholesky factorizations, one
@@ -87,7 +87,7 @@ def measure(h, repeat):
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--sizes", type=float, nargs="+", default=[1.6, 1.0, 0.75])
+    parser.add_argument("--sizes", type=float, nargs="+", default=[1.6, 1.3, 1.0])
     parser.add_argument("--repeat", type=int, default=3)
     args = parser.parse_args()
     rows = [measure(h, args.repeat) for h in args.sizes]
