@@ -99,7 +99,7 @@ class NestedEstimator:
         self.evaluate = problem.evaluate_forces if inner == "lbfgs-forces" else problem.evaluate_displacement
         self.control_scale = 1.0
         self.phi_scale = 1.0
-        self.initial_phi = None  # Phi* at the initial materials
+        self.initial_phi = None  # Phi* at the initial materials (first solve until known)
         self.anchor = None  # reduced coordinates of the surface-matched boundary displacement
         self.seen = []  # (log E, nu), controls, evaluation of every Phi* solved
         self.surrogate = None
@@ -258,13 +258,13 @@ class NestedEstimator:
             return self._outer_on_surrogate()
         self.phi_scale = max(self.evaluate(theta0, self.boundary(controls0)).phi, 1e-300)
         self._scan([theta0] + self.scan_points(), theta0, controls0, d0)
-        self.initial_phi = self.progress.history[0]["phi"]
         self._outer_solved()
 
     def _scan(self, candidates, theta0, controls0, d0):
         self.say(f"scan of {len(candidates)} material values (start: surface matching; inner: {self.inner})")
         for theta in candidates:
-            self.phi_star(theta, controls0 if theta is theta0 else self.initial_controls(theta, d0), "scan")
+            _, ev = self.phi_star(theta, controls0 if theta is theta0 else self.initial_controls(theta, d0), "scan")
+            self.initial_phi = ev.phi if self.initial_phi is None else self.initial_phi
 
     def _outer_solved(self):
         """L-BFGS-B over the materials, every value solved in full."""
@@ -379,7 +379,7 @@ def estimate(problem: InverseProblem, options: Options | None = None, say=print,
     result = {
         "materials": {m.name: {"E": float(E[i]), "nu": float(nu[i])} for i, m in enumerate(scene.materials)},
         "estimated": [f"{m}.{k}" for m, k in problem.estimated],
-        "objective": {"undeformed": phi_undeformed, "initial": estimator.initial_phi if estimator.initial_phi is not None else estimator.progress.history[0]["phi"], "final": final.phi},
+        "objective": {"undeformed": phi_undeformed, "initial": estimator.initial_phi, "final": final.phi},
         "surface_distance": problem.surface_distance(final.residual),
         "iterations": {"outer": estimator.outer_iterations, "inner": estimator.inner_iterations,
                        "evaluations": len(estimator.progress.history),
