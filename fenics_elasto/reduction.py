@@ -192,6 +192,7 @@ def train_atlas_bases(atlas: dict, patients, rank: int, say=print) -> Bases:
 
     ``patients``: (InverseProblem on a mesh built around the atlas, example paths) each.
     """
+    require(rank >= 1, f"--rank must be >= 1, got {rank}")
     columns = []
     for i, (patient, examples) in enumerate(patients, 1):
         order = atlas_order(patient, atlas)

@@ -152,3 +152,5 @@ def test_train_arguments_that_cannot_work(tmp_path, capsys, scenes):
                                 "--out", tmp_path / "b.npz"], "no examples", p.name)
     _expect_user_error(capsys, ["train", "--examples", tmp_path, "--patient", p, tmp_path, "--rank", 2,
                                 "--out", tmp_path / "b.npz"], "--examples")
+    _expect_user_error(capsys, ["train", "--atlas", tmp_path / "a.msh", "--patient", p, tmp_path, "--rank", 2,
+                                "--out", tmp_path / "b.npz"], "a.msh")
