@@ -105,9 +105,12 @@ def test_ctrl_c_writes_the_best_result_so_far(tmp_path):
     _, sim = fine_simulation("prostate-phantom", tmp_path / "fine", 1.3, ["materials.prostate.E=50"])
     landmarks = landmarks_for(source, sim, tmp_path / "landmarks.csv")
     out = tmp_path / "result"
+    # As from a terminal: a job started in the background of a non-interactive shell (CI
+    # scripts) inherits SIGINT ignored, and Python then installs no KeyboardInterrupt.
     proc = subprocess.Popen([str(BIN / "fenics-elasto"), "estimate", str(source), "--out", str(out),
                              "--set", f"target={{landmarks='{landmarks}'}}"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     seen = []
     for line in proc.stdout:
         seen.append(line)
