@@ -123,7 +123,7 @@ class MaterialSurrogate:
         """||K(theta)(G + V a)|| on the free DOFs relative to ||K(theta) G|| there: 0 is exact."""
         c, _ = self.problem.stiffness_coefficients(theta)
         a = self._solve(c)[1]
-        R = sum(cj * (MG + MV @ a) for cj, MG, MV in zip(c, self.MG, self.MV))
         load = sum(cj * MG for cj, MG in zip(c, self.MG))
+        R = load + sum(cj * (MV @ a) for cj, MV in zip(c, self.MV))
         return float(np.sqrt(np.sum(self._dot(R[self.free], R[self.free]).diagonal())
                              / max(np.sum(self._dot(load[self.free], load[self.free]).diagonal()), 1e-300)))
