@@ -302,7 +302,7 @@ class Table(Node):
         near = suggestion(name, self.keys)
         if near is None:
             hint = "; known keys: " + ", ".join(self.keys)
-        elif self.keys[near].node.table() is not None and not isinstance(self.keys[near].node, Elastic):
+        elif isinstance(self.keys[near].node, (Table, Named)):
             hint = f"; did you mean {Where('', where.keys[:-1] + (near,)).path(table=True)}?"
         else:
             hint = f"; did you mean {key_text(near)}?"
