@@ -444,3 +444,12 @@ def test_scene_spec_defaults(tmp_path):
         "regions": {"prostate": {"surface": ["p.stl"]}}, "cavities": {}, "patches": {},
     }
     assert spec(overrides=["body.box={margin=5}"])["body"]["surface"] is None  # one shape replaces the other
+
+
+def test_target_forms():
+    landmarks_only, _ = problem({"target": {"surface": DROP, "landmarks": "l.csv"}})
+    assert landmarks_only["target"] == {"surface": None, "surfaces": None, "landmarks": "l.csv",
+                                        "landmark_weight": None, "noise": None}
+    per_group, _ = problem({"target": {"surface": DROP, "surfaces": {"outline": "o.vtp"}, "landmarks": "l.csv",
+                                       "landmark_weight": 2, "noise": 0.05}})
+    assert per_group["target"]["surfaces"] == {"outline": "o.vtp"} and per_group["target"]["landmark_weight"] == 2.0
