@@ -112,7 +112,7 @@ def _check_and_lock(path: Path):
     created = _check_directory(path)
     note = _take_lock(path)
     for leftover in path.glob(f".*{PART}*"):  # temporaries of a killed run (we hold the lock: no one writes)
-        _remove(leftover)
+        _remove(leftover, quiet=True)
     return created, note
 
 
@@ -129,7 +129,7 @@ def _check_directory(path: Path) -> list[Path]:
         path.mkdir(parents=True, exist_ok=True)
     except OSError as err:
         raise UserError(f"{path}: cannot create it ({_cause(err)})") from None
-    probe = path / f".fenics-elasto-probe-{os.getpid()}"
+    probe = path / f".fenics-elasto-probe{PART}{os.getpid()}"  # a killed run's is swept like a temporary
     try:
         _write_synced(probe, b"\0" * 4096)
     except OSError as err:
@@ -254,6 +254,7 @@ class OutputFolder:
         self._small: dict[str, bytes] = {}  # what write_bytes got, kept for the fallback
         self._old: set[str] = set()  # files listed by the earlier run's result.json
         self._locked = comm.rank == 0
+        self._released = False
 
     def path_for(self, name: str) -> Path:
         """The temporary path to write ``name`` (a file or a directory) to, inside ``writing()``.
@@ -285,6 +286,8 @@ class OutputFolder:
         ``OSError`` inside it or while renaming: ``UserError`` naming the file, after the
         small files and ``result.json`` went to a fallback folder (named in the message).
         """
+        if self._released:
+            raise RuntimeError(f"{self.path}: released already; prepare_folder it again")
         with deferred_signals(self.comm):
             failure = self.comm.bcast(self._attempt(self._begin), root=0)
             if failure is None:
@@ -301,6 +304,7 @@ class OutputFolder:
     def release(self) -> None:
         """Give up the lock (idempotent; also run at exit). A folder this run created and
         wrote nothing into is removed again: no claim to a result."""
+        self._released = True
         if not self._locked:
             return
         self._locked = False
