@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 import fenics_elasto  # noqa: F401
-from fenics_elasto.estimate import NestedEstimator, Options, estimate
+from fenics_elasto.estimate import Estimator, Options, estimate
 from fenics_elasto.io import write_matched_surfaces
 from fenics_elasto.meshing import build_scene
 from fenics_elasto.objective import InverseProblem
@@ -36,9 +36,8 @@ def make_target(out: Path, nu: float, degree: int) -> Path:
 
 def profile(problem: InverseProblem, values) -> list[float]:
     """Phi*(nu): the inner optimum over the forces at each nu (the curve of Fig. 5)."""
-    est = NestedEstimator(problem, Options(), say=lambda *_: None)
-    d0 = est.matched_boundary_displacement()
-    return [est.solve_inner(np.array([nu]), est.initial_controls(np.array([nu]), d0))[1].phi for nu in values]
+    profile = Estimator(problem, Options.from_scene(problem.scene)).profile
+    return [profile.solve(np.array([nu]), "probe").value for nu in values]
 
 
 def main():
@@ -54,7 +53,7 @@ def main():
         scene = load_scene(source, [f"target.surface='{target.resolve()}'", f"degree={args.degree}"])
         problem = InverseProblem(scene)
         start = time.perf_counter()
-        result, _, _ = estimate(problem, say=lambda *_: None)
+        result = estimate(problem)
         seconds = time.perf_counter() - start
         found = result["materials"]["letter"]["nu"]
         rows.append((nu, found, 100 * abs(found - nu) / nu, seconds, result["iterations"]["outer"],

@@ -111,7 +111,7 @@ def run_case(source: Path, target: str, basis=None, options=None) -> dict:
     """One estimate (``target``: a --set value from make_targets); result.json fields + seconds."""
     problem = InverseProblem(load_scene(source, [target]))
     start = time.perf_counter()
-    result, _, _ = estimate(problem, options=options, say=lambda *_: None, basis=basis)
+    result = estimate(problem, options=options, basis=basis).record
     result["seconds"] = time.perf_counter() - start
     return result
 
@@ -183,7 +183,7 @@ def main():
     examples = make_examples(source, out / "examples", count)
     print("2. train the force bases", flush=True)
     trainer = InverseProblem(load_scene(source), target=False)
-    bases = train_bases(trainer, examples, rank=count, say=lambda *_: None)
+    bases = train_bases(trainer, examples, rank=count)
     bases.save(out / "bases.npz")
     rank = bases.W.shape[1]
     print(f"   rank {rank} of {trainer.force_dofs} force dofs; explained variance "
@@ -287,7 +287,7 @@ def atlas_study(out: Path, patients: int, examples: int, held_out, cases, fine: 
         folders = make_examples(source, out / f"patient{seed}" / "examples", examples, seed=100 + seed, patient=seed)
         training.append((InverseProblem(load_scene(source), target=False), folders))
         print(f"   patient {seed}: {examples} example deformations", flush=True)
-    bases = train_atlas_bases(atlas, training, rank, say=lambda *_: None)
+    bases = train_atlas_bases(atlas, training, rank)
     print(f"   atlas bases: rank {bases.W.shape[1]} from {bases.examples} examples; explained variance "
           + " ".join(f"{v:.3f}" for v in bases.variance[:8]) + " ...", flush=True)
     rows = []

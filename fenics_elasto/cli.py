@@ -10,6 +10,8 @@ from pathlib import Path
 from mpi4py import MPI
 
 from fenics_elasto.errors import UserError, require
+from fenics_elasto.interrupts import handle_signals
+from fenics_elasto.logs import log, show
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -44,6 +46,14 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--atlas", type=Path, default=None,
                    help="the mesh every training scene was built around (`mesh --atlas`): bases in its "
                         "numbering, usable on any patient built around it")
+    p.add_argument("--synthetic", type=int, default=None, metavar="N",
+                   help="N example deformations of the scene itself: smooth random pressure/traction, affine and "
+                        "displacement-mode wall motions (with or instead of --examples)")
+    p.add_argument("--seed", type=int, default=0, help="--synthetic: random seed")
+    p.add_argument("--length", type=float, default=None, help="--synthetic: length scale of the random fields "
+                   "(mesh units; default half the loaded walls' extent)")
+    p.add_argument("--amplitude", type=float, default=None, help="--synthetic: rms wall displacement of an example "
+                   "(mesh units; default 2 %% of the scene's diameter)")
     p.add_argument("--rank", type=int, required=True)
     p.add_argument("--out", type=Path, required=True, help="bases .npz")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a TOML value (all scenes)")
@@ -68,68 +78,42 @@ def _mesh(args) -> None:
             error = str(err)
     path, error = MPI.COMM_WORLD.bcast((path, error), root=0)
     require(error is None, error)
-    _say(f"wrote {path}")
+    log.info(f"wrote {path}")
 
 
 def _simulate(args) -> None:
-    from fenics_elasto.io import write_solution
-    from fenics_elasto.scene import load_scene
-    from fenics_elasto.simulate import simulate
+    from fenics_elasto.commands import run_simulate
 
-    scene = load_scene(args.problem, args.set)
-    sim = simulate(scene)
-    write_solution(args.out, scene, sim.u, sim.result, title=f"simulate: {args.problem.parent.name}")
-    _say(f"dofs {sim.result['dofs']}, max |u| {sim.result['max_displacement']:.4g}, "
-         f"{sim.result['wall_time_s']:.2f} s -> {args.out}")
+    run_simulate(args.problem, args.out, args.set)
 
 
-def _estimate(args) -> None:
-    from fenics_elasto.estimate import run_estimate
+def _estimate(args) -> int:
+    from fenics_elasto.commands import run_estimate
 
     result = run_estimate(args.problem, args.out, args.set)
     return 130 if result["interrupted"] else 0
 
 
 def _train(args) -> None:
-    from fenics_elasto.meshing import atlas_surfaces
-    from fenics_elasto.objective import InverseProblem
-    from fenics_elasto.reduction import train_atlas_bases, train_bases
-    from fenics_elasto.render import plot_variance
-    from fenics_elasto.scene import load_scene
+    from fenics_elasto.commands import run_train
 
-    patients = ([[args.problem, *args.examples]] if args.problem else []) + args.patient
-    require(patients, "train: give PROBLEM.toml --examples ..., or --atlas with --patient PROBLEM.toml EXAMPLE...")
+    from fenics_elasto.synthetic import Generator
+
+    patients = ([(args.problem, args.examples)] if args.problem else []) + [(p, e) for p, *e in args.patient]
+    require(patients, "train: give PROBLEM.toml --examples ... or --synthetic N, or --atlas with --patient PROBLEM.toml EXAMPLE...")
     require(not args.examples or args.problem, "train: --examples belong to a PROBLEM.toml (first argument)")
-    require(len(patients) == 1 or args.atlas, "train: several training scenes need --atlas (their shared mesh)")
-    for problem, *examples in patients:
-        require(examples, f"train: no examples given for {problem}")
-    problems = [(InverseProblem(load_scene(p, args.set), target=False), examples) for p, *examples in patients]
-    count = sum(len(e) for _, e in problems)
-    _say(f"train: {len(problems)} scene(s), {count} examples, {problems[0][0].force_dofs} force dofs, rank {args.rank}")
-    if args.atlas:
-        atlas = atlas_surfaces(args.atlas, problems[0][0].scene.loaded)
-        bases = train_atlas_bases(atlas, problems, args.rank, say=_say)
-    else:
-        bases = train_bases(*problems[0], args.rank, say=_say)
-    if MPI.COMM_WORLD.rank == 0:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        bases.save(args.out)
-        plot_variance(bases.variance, args.out.with_suffix(".png"))
-    kept = bases.variance.sum()
-    _say(f"wrote {args.out} (rank {bases.W.shape[1]}, {100 * kept:.2f} % of the example energy) "
-         f"and {args.out.with_suffix('.png')}")
+    generator = None
+    if args.synthetic is not None:
+        require(args.synthetic >= 1, f"--synthetic must be >= 1, got {args.synthetic}")
+        require(not args.atlas, "train: --synthetic trains one scene; it does not combine with --atlas")
+        generator = Generator(args.synthetic, args.seed, args.length, args.amplitude)
+    run_train(patients, args.out, args.rank, args.atlas, args.set, generator)
 
 
 def _render(args) -> None:
-    from fenics_elasto.render import render_folder
+    from fenics_elasto.commands import run_render
 
-    if MPI.COMM_WORLD.rank == 0:
-        _say(f"wrote {render_folder(args.result_dir, args.out)}")
-
-
-def _say(text: str) -> None:
-    if MPI.COMM_WORLD.rank == 0:
-        print(text, flush=True)
+    run_render(args.result_dir, args.out)
 
 
 COMMANDS = {"mesh": _mesh, "simulate": _simulate, "estimate": _estimate, "train": _train, "render": _render}
@@ -137,20 +121,24 @@ COMMANDS = {"mesh": _mesh, "simulate": _simulate, "estimate": _estimate, "train"
 
 def main(argv=None) -> int:
     args = _parser().parse_args(argv)
+    show()
+    comm = MPI.COMM_WORLD
     try:
-        return COMMANDS[args.command](args) or 0
+        with handle_signals(comm):  # SIGINT, SIGTERM, SIGHUP: stop, keep the best so far
+            return COMMANDS[args.command](args) or 0
     except UserError as err:
-        if MPI.COMM_WORLD.rank == 0:
+        if comm.rank == 0:
             print(f"error: {err}", file=sys.stderr, flush=True)
         return 2
-    except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr, flush=True)
+    except KeyboardInterrupt as err:
+        if comm.rank == 0:
+            print(f"interrupted{': ' + str(err) if str(err) else ''}", file=sys.stderr, flush=True)
         return 130
     except Exception:
-        if MPI.COMM_WORLD.size > 1:  # a bug on one rank would leave the others waiting forever
+        if comm.size > 1:  # a bug on one rank would leave the others waiting forever
             traceback.print_exc()
             sys.stderr.flush()
-            MPI.COMM_WORLD.Abort(1)
+            comm.Abort(1)
         raise
 
 

@@ -136,8 +136,9 @@ class Number(Node):
 
     noun = "a number"
 
-    def __init__(self, gt=None, ge=None, lt=None, le=None):
+    def __init__(self, gt=None, ge=None, lt=None, le=None, noun: str | None = None):
         self.bounds = (gt, ge, lt, le)
+        self.noun = noun or self.noun
         self.expected = self.noun + _range_text(gt, ge, lt, le)
 
     def is_type(self, value) -> bool:
@@ -447,8 +448,8 @@ def _default_nu_bounds(value: float):
 
 
 MATERIAL = Table({
-    "E": Key(Elastic(Number(gt=0), _default_E_bounds), REQUIRED),
-    "nu": Key(Elastic(Number(gt=-1, lt=0.5), _default_nu_bounds), REQUIRED),
+    "E": Key(Elastic(Number(gt=0, noun="a Young's modulus"), _default_E_bounds), REQUIRED),
+    "nu": Key(Elastic(Number(gt=-1, lt=0.5, noun="a Poisson's ratio"), _default_nu_bounds), REQUIRED),
 })
 
 DISPLACEMENT = Table({  # u(x) = value + (gradient + scale I)(x - center); scene.py fills zeros
@@ -538,22 +539,25 @@ def _command_checks(config: dict, command: str, where: Where) -> list[str]:
     return warnings
 
 
-def validate_problem(raw: dict, source: str = "problem.toml", command: str = "estimate",
+def validate_problem(raw: dict, source: str = "problem.toml", command: str | None = "estimate",
                      gdim: int | None = None, overridden: dict | None = None) -> tuple[dict, list[str]]:
     """Check a problem's raw TOML dict for ``command``: (normalised config, warnings).
 
-    ``overridden``: what ``apply_overrides`` returned, to blame bad values on their --set.
+    ``command`` None checks types and ranges only (a scene loaded for any use, from
+    Python); ``overridden``: what ``apply_overrides`` returned, to blame bad values on
+    their --set.
     """
-    if command not in COMMANDS:
+    if command is not None and command not in COMMANDS:
         raise ValueError(f"command must be one of {COMMANDS}, got {command!r}")
     where = Where(str(source), (), overridden or {})
     config = PROBLEM.check(raw, where)
     if gdim is not None:
         _check_sizes(config["boundary"], gdim, where.at("boundary"))
-    return config, _command_checks(config, command, where)
+    return config, [] if command is None else _command_checks(config, command, where)
 
 
-def read_problem(path, overrides=(), command: str = "estimate", gdim: int | None = None) -> tuple[dict, list[str]]:
+def read_problem(path, overrides=(), command: str | None = "estimate",
+                 gdim: int | None = None) -> tuple[dict, list[str]]:
     """Read, override and check ``problem.toml``: (normalised config, warnings)."""
     raw = read_toml(Path(path), "problem file")
     overridden = apply_overrides(raw, overrides, PROBLEM, str(path))

@@ -55,6 +55,17 @@ def epsilon(u):
     return ufl.sym(ufl.grad(u))
 
 
+def combine(c, terms):
+    """sum_j c_j M_j -- the one home of K(theta) as a linear combination, for the
+    assembled PETSc matrices and for their dense projections (surrogate) alike."""
+    if isinstance(terms[0], np.ndarray):
+        return sum(cj * M for cj, M in zip(c, terms))
+    K = terms[0].duplicate(copy=False)
+    for cj, M in zip(c, terms):
+        K.axpy(cj, M, structure=PETSc.Mat.Structure.SAME_NONZERO_PATTERN)
+    return K
+
+
 # --------------------------------------------------------------------------- node sets
 
 
@@ -163,60 +174,76 @@ class ElasticModel:
     # --- matrices
 
     @cached_property
-    def material_matrices(self) -> tuple[list, list]:
-        """(A_m, B_m) per material, assembled on first use: a model that only numbers
-        nodes (landmarks, atlas order) never pays for them."""
+    def terms(self) -> list:
+        """M_j with K(theta) = sum_j c_j M_j: (A_m, B_m) per material, interleaved.
+
+        A_m = 2 eps(u):eps(v) and B_m = div u div v over region m, assembled on first use
+        (a model that only numbers nodes -- landmarks, atlas order -- never pays for them)
+        with the full sparsity pattern, via a DG0 indicator of the region.
+        """
         mesh, V = self.scene.mesh, self.V
         u, v = ufl.TrialFunction(V), ufl.TestFunction(V)
         chi = fem.Function(fem.functionspace(mesh, ("DG", 0)))
         shear = fem.form(2 * chi * ufl.inner(epsilon(u), epsilon(v)) * ufl.dx)
         volumetric = fem.form(chi * ufl.div(u) * ufl.div(v) * ufl.dx)
         cell_dofs = chi.function_space.dofmap.list[:, 0]
-        A, B = [], []
+        out = []
         for material in self.scene.materials:
             chi.x.array[:] = 0.0
             chi.x.array[cell_dofs[self.scene.cell_tags.find(material.tag)]] = 1.0
             chi.x.scatter_forward()
-            for form, out in ((shear, A), (volumetric, B)):
+            for form in (shear, volumetric):
                 M = dolfinx.fem.petsc.assemble_matrix(form)
                 M.assemble()
                 out.append(M)
-        return A, B
+        return out
 
-    def lame_parameters(self, E, nu):
-        return lame(E, nu, self.scene.plane)
+    def coefficients(self, E, nu) -> np.ndarray:
+        """c_j of ``terms``: (mu_m, lambda_m) of every material, interleaved."""
+        mu, lam = lame(E, nu, self.scene.plane)
+        return np.stack([mu, lam], axis=1).ravel()
 
-    def stiffness(self, E, nu) -> PETSc.Mat:
-        """Unconstrained K(theta) as a linear combination of the cached matrices."""
-        mu, lam = self.lame_parameters(E, nu)
-        A, B = self.material_matrices
-        K = A[0].duplicate(copy=False)
-        for m in range(len(A)):
-            K.axpy(mu[m], A[m], structure=PETSc.Mat.Structure.SAME_NONZERO_PATTERN)
-            K.axpy(lam[m], B[m], structure=PETSc.Mat.Structure.SAME_NONZERO_PATTERN)
-        return K
+    def coefficient_derivatives(self, E, nu) -> tuple[np.ndarray, np.ndarray]:
+        """(dc/dE_m, dc/dnu_m): rows m, columns j of ``terms``."""
+        dmu_dE, dmu_dnu, dlam_dE, dlam_dnu = lame_jacobian(E, nu, self.scene.plane)
+        n = len(np.atleast_1d(E))
+        dE, dnu = np.zeros((n, 2 * n)), np.zeros((n, 2 * n))
+        rows = np.arange(n)
+        dE[rows, 2 * rows], dE[rows, 2 * rows + 1] = dmu_dE, dlam_dE
+        dnu[rows, 2 * rows], dnu[rows, 2 * rows + 1] = dmu_dnu, dlam_dnu
+        return dE, dnu
 
-    def apply_stiffness(self, E, nu, x: PETSc.Vec, out: PETSc.Vec) -> PETSc.Vec:
-        """out = K(theta) x (unconstrained) from the cached matrices, without forming K."""
-        mu, lam = self.lame_parameters(E, nu)
+    def stiffness(self, c) -> PETSc.Mat:
+        """Unconstrained K = sum_j c_j M_j (a new matrix)."""
+        return combine(c, self.terms)
+
+    def apply_stiffness(self, c, x: PETSc.Vec, out: PETSc.Vec) -> PETSc.Vec:
+        """out = (sum_j c_j M_j) x, without forming the sum."""
         out.zeroEntries()
         tmp = out.duplicate()
-        A, B = self.material_matrices
-        for m in range(len(A)):
-            A[m].mult(x, tmp)
-            out.axpy(mu[m], tmp)
-            B[m].mult(x, tmp)
-            out.axpy(lam[m], tmp)
+        for cj, M in zip(c, self.terms):
+            M.mult(x, tmp)
+            out.axpy(cj, tmp)
         tmp.destroy()
         return out
 
-    def factorize(self, E, nu, clamped: np.ndarray) -> "Factorization":
-        """K(theta) with the clamped DOFs eliminated, factorized; cached and counted."""
-        key = (tuple(np.round(E, 14)), tuple(np.round(nu, 14)), clamped.tobytes())
+    def term_products(self, u: PETSc.Vec, w: PETSc.Vec) -> np.ndarray:
+        """w^T M_j u for every term: with dc/dtheta, the derivative w^T dK/dtheta u."""
+        tmp = u.duplicate()
+        products = []
+        for M in self.terms:
+            M.mult(u, tmp)
+            products.append(w.dot(tmp))
+        tmp.destroy()
+        return np.array(products)
+
+    def factorize(self, c, clamped: np.ndarray) -> "Factorization":
+        """K = sum_j c_j M_j with the clamped DOFs eliminated, factorized; cached and counted."""
+        key = (tuple(np.round(np.asarray(c, float), 12)), clamped.tobytes())
         if key in self._cache:
             self._cache.move_to_end(key)
             return self._cache[key]
-        K = self.stiffness(E, nu)
+        K = self.stiffness(c)
         start = self.V.dofmap.index_map.local_range[0] * self.bs
         K.zeroRowsColumns((clamped + start).astype(PETSc.IntType), diag=1.0)
         factor = Factorization(K, clamped, self.solver)
@@ -233,12 +260,13 @@ class ElasticModel:
         u.name = name
         return u
 
-    def solve(self, E, nu, clamped: np.ndarray, rhs: PETSc.Vec | None = None, prescribed=None) -> fem.Function:
+    def solve(self, c, clamped: np.ndarray, rhs: PETSc.Vec | None = None, prescribed=None) -> fem.Function:
         """u with K u = rhs on free DOFs and u = prescribed (or 0) on the clamped DOFs.
 
-        ``prescribed``: a Function holding the clamped values (others ignored).
+        ``c``: the coefficients of K (``coefficients``); ``prescribed``: a Function holding
+        the clamped values (others ignored).
         """
-        factor = self.factorize(E, nu, clamped)
+        factor = self.factorize(c, clamped)
         load = self.function("rhs")  # keep the Function alive: its petsc_vec borrows its memory
         b = load.x.petsc_vec
         if rhs is not None:
@@ -248,7 +276,7 @@ class ElasticModel:
             keep = np.zeros(len(g.array), bool)
             keep[clamped] = True
             g.array[~keep] = 0.0  # only the clamped values lift the load
-            lift = self.apply_stiffness(E, nu, g, g.duplicate())
+            lift = self.apply_stiffness(c, g, g.duplicate())
             b.axpy(-1.0, lift)
             b.array[clamped] = g.array[clamped]
         else:

@@ -6,11 +6,9 @@ written twice) and written there.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
-from mpi4py import MPI
 
 import dolfinx
 from dolfinx import fem
@@ -126,19 +124,26 @@ def surface(u: fem.Function, facets: np.ndarray, deformed: bool = True, pieces: 
     return None if data is None else polydata(*data, deformed=deformed)
 
 
-def write_displacement(u: fem.Function, out: Path) -> Path:
-    """The displacement field for ParaView (VTX / ADIOS2 .bp)."""
-    path = out / "displacement.bp"
+def write_displacement(u: fem.Function, path: Path) -> Path:
+    """The displacement field for ParaView (VTX / ADIOS2 .bp, a folder) at ``path``."""
     with dolfinx.io.VTXWriter(u.function_space.mesh.comm, path, [u], engine="BP4") as writer:
         writer.write(0.0)
     return path
 
 
-def write_point_csv(path: Path, points: np.ndarray, vectors: np.ndarray, prefix: str) -> None:
-    """Rows ``point, vector``; header x0.. then <prefix>0.. (landmarks: X, forces: f)."""
+def point_csv(points: np.ndarray, vectors: np.ndarray, prefix: str) -> str:
+    """CSV rows ``point, vector``; header x0.. then <prefix>0.. (landmarks: X, forces: f)."""
+    import io
+
     dim = points.shape[1]
     header = ",".join([f"x{i}" for i in range(dim)] + [f"{prefix}{i}" for i in range(vectors.shape[1])])
-    np.savetxt(path, np.c_[points, vectors], delimiter=",", header=header, comments="")
+    text = io.StringIO()
+    np.savetxt(text, np.c_[points, vectors], delimiter=",", header=header, comments="")
+    return text.getvalue()
+
+
+def write_point_csv(path: Path, points: np.ndarray, vectors: np.ndarray, prefix: str) -> None:
+    Path(path).write_text(point_csv(points, vectors, prefix))
 
 
 def write_landmarks(path: Path, points: np.ndarray, displaced: np.ndarray) -> None:
@@ -146,51 +151,35 @@ def write_landmarks(path: Path, points: np.ndarray, displaced: np.ndarray) -> No
     write_point_csv(path, points, displaced, "X")
 
 
-def write_json(data: dict, path: Path, comm=MPI.COMM_WORLD) -> None:
-    if comm.rank == 0:
-        path.write_text(json.dumps(data, indent=2, default=_json_default) + "\n")
-
-
-def _json_default(value):
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    raise TypeError(type(value))
-
-
-def write_matched_surfaces(out: Path, scene, u: fem.Function, pieces: int = 4) -> None:
+def write_matched_surfaces(out: Path, scene, u: fem.Function, pieces: int = 4, place=None) -> None:
     """``surface_<group>.vtp`` per matched group and ``surface.vtp`` with all (deformed).
 
     These are ready-made targets for ``estimate``. ``pieces``: a curved facet is
     written as pieces x pieces flat triangles; their sag is an error of the target
     (Table-1 case, target h = 1.3: E = 51.93 from 4 x 4 pieces, 51.66 from 8 x 8).
+    ``place(name)``: where to write each file (a result folder's temporary names);
+    default ``out / name``.
     """
     out = Path(out)
+    place = place or (lambda name: out / name)
     matched = [surface(u, scene.facet_groups[g], pieces=pieces) for g in scene.matched]
     if scene.comm.rank == 0:
         import pyvista as pv
 
         out.mkdir(parents=True, exist_ok=True)
         for g, mesh in zip(scene.matched, matched):
-            mesh.save(out / f"surface_{g}.vtp")
+            mesh.save(place(f"surface_{g}.vtp"))
         if matched:
-            pv.merge(matched).clean(tolerance=0.0).save(out / "surface.vtp")
+            pv.merge(matched).clean(tolerance=0.0).save(place("surface.vtp"))
 
 
-def write_solution(out: Path, scene, u: fem.Function, result: dict, target=None, title: str = "") -> dict:
-    """Everything a solve leaves behind: result.json, displacement.bp, surfaces, screenshot.png.
-
-    ``surface.vtp`` holds the deformed matched groups together (usable as a target);
-    ``surface_<group>.vtp`` each one alone.
-    """
+def write_solution(folder, scene, u: fem.Function, target=None, title: str = "") -> None:
+    """Everything a solve leaves behind, into an ``outputs.OutputFolder`` (inside its
+    ``writing()``): displacement.bp, surface.vtp and surface_<group>.vtp (deformed,
+    usable as targets), screenshot.png. Collective."""
     from fenics_elasto.render import render
 
-    out = Path(out)
-    if scene.comm.rank == 0:
-        out.mkdir(parents=True, exist_ok=True)
-    scene.comm.barrier()
-    write_displacement(u, out)
+    write_displacement(u, folder.path_for("displacement.bp"))
     tdim = scene.mesh.topology.dim
     shown = list(dict.fromkeys(scene.matched + scene.loaded + list(scene.displacement) + scene.fixed))
     deformed = {g: surface(u, scene.facet_groups[g]) for g in shown}
@@ -200,8 +189,6 @@ def write_solution(out: Path, scene, u: fem.Function, result: dict, target=None,
     else:
         scene.mesh.topology.create_connectivity(tdim - 1, tdim)
         context = gather_entities(u, tdim - 1, dolfinx.mesh.exterior_facet_indices(scene.mesh.topology))
-    write_matched_surfaces(out, scene, u)
+    write_matched_surfaces(folder.path, scene, u, place=folder.path_for)
     if scene.comm.rank == 0:
-        render(out / "screenshot.png", deformed, reference, polydata(*context), target, title, dim=scene.gdim)
-    write_json(result, out / "result.json", scene.comm)
-    return result
+        render(folder.path_for("screenshot.png"), deformed, reference, polydata(*context), target, title, dim=scene.gdim)

@@ -13,7 +13,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from fenics_elasto.surface import Surface, Target, quadratic_edges
+from fenics_elasto.misfit import SurfaceTerm
+from fenics_elasto.surface import Surface, quadratic_edges
 
 
 def neighbours(points: np.ndarray, groups: np.ndarray, k: int = 6) -> np.ndarray:
@@ -44,7 +45,7 @@ def affine_alignment(points, groups, target, iterations: int = 40) -> np.ndarray
 
 def match_surface(points, groups, target, iterations: int = 60, k_data: float = 0.5,
                   k_spring: float = 0.9, k_spring_final: float = 0.3, affine: bool = True) -> np.ndarray:
-    """Displacements that bring ``points`` onto ``target`` (a surface.Target)."""
+    """Displacements that bring ``points`` onto ``target`` (anything with ``residual(x)``: a misfit.SurfaceTerm)."""
     nbrs = neighbours(points, groups)
     u = affine_alignment(points, groups, target) if affine else np.zeros_like(points)
     for k_n in np.geomspace(k_spring, k_spring_final, iterations):
@@ -61,7 +62,7 @@ def fit_surfaces(template: dict, onto: dict) -> dict:
     vertices = {g: np.unique(template[g][1][:, :3]) for g in names}
     points = np.concatenate([template[g][0][vertices[g]] for g in names])
     groups = np.repeat(np.arange(len(names)), [len(vertices[g]) for g in names])
-    target = Target([Surface(onto[g][0], onto[g][1][:, :3]) for g in names], groups)
+    target = SurfaceTerm([Surface(onto[g][0], onto[g][1][:, :3]) for g in names], groups)
     moved = points + match_surface(points, groups, target)
     fitted = {}
     for i, g in enumerate(names):

@@ -256,6 +256,12 @@ class OutputFolder:
         self._locked = comm.rank == 0
         self._released = False
 
+    def __enter__(self) -> "OutputFolder":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.release()  # also when the work failed: the lock goes, an empty new folder too
+
     def path_for(self, name: str) -> Path:
         """The temporary path to write ``name`` (a file or a directory) to, inside ``writing()``.
         Same on every rank (for collective writers); renamed to ``name`` at the end."""

@@ -20,10 +20,12 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from fenics_elasto.errors import UserError, require
+from fenics_elasto.logs import log
 from fenics_elasto.matching import match_surface
 from fenics_elasto.meshing import read_surfaces
 from fenics_elasto.objective import InverseProblem
-from fenics_elasto.surface import Target, quadratic_edges, read_surface, triangle_edges
+from fenics_elasto.misfit import SurfaceTerm
+from fenics_elasto.surface import quadratic_edges, read_surface, triangle_edges
 
 
 @dataclass
@@ -33,6 +35,7 @@ class Bases:
     loaded_coords: np.ndarray  # (n_loaded, gdim) the loaded nodes they belong to (atlas nodes if atlas)
     examples: int
     atlas: dict | None = None  # group -> (points, triangles): W is in atlas numbering
+    held_out: float | None = None  # share of left-out examples' energy the bases keep (held_out_energy)
 
     def truncated(self, rank: int) -> "Bases":
         require(1 <= rank <= self.W.shape[1], f"rank {rank} outside 1..{self.W.shape[1]} (the trained bases)")
@@ -43,6 +46,7 @@ class Bases:
         for g, (points, triangles) in (self.atlas or {}).items():
             surfaces[f"atlas_points_{g}"], surfaces[f"atlas_triangles_{g}"] = points, triangles
         np.savez(path, W=self.W, variance=self.variance, loaded_coords=self.loaded_coords, examples=self.examples,
+                 held_out=np.nan if self.held_out is None else self.held_out,
                  atlas_groups=np.array(list(self.atlas or {}), dtype=str), **surfaces)
 
     @staticmethod
@@ -52,9 +56,22 @@ class Bases:
             data = np.load(path)
             groups = data["atlas_groups"].tolist() if "atlas_groups" in data else []
             atlas = {g: (data[f"atlas_points_{g}"], data[f"atlas_triangles_{g}"]) for g in groups}
-            return Bases(data["W"], data["variance"], data["loaded_coords"], int(data["examples"]), atlas or None)
-        except (OSError, KeyError, ValueError) as err:
+            held_out = float(data["held_out"]) if "held_out" in data else np.nan
+            bases = Bases(data["W"], data["variance"], data["loaded_coords"], int(data["examples"]), atlas or None,
+                          None if np.isnan(held_out) else held_out)
+        except (OSError, KeyError, ValueError, TypeError, EOFError) as err:
             raise UserError(f"{path}: not a bases file from `fenics-elasto train` ({err})") from None
+        bases.check(path)
+        return bases
+
+    def check(self, path: Path) -> None:
+        """Shapes that fit together, finite numbers, orthonormal columns: or one line."""
+        W, coords = self.W, self.loaded_coords
+        require(W.ndim == 2 and W.shape[1] >= 1 and coords.ndim == 2 and W.shape[0] == coords.size,
+                f"{path}: W {W.shape} does not fit its {coords.shape[0]} loaded nodes; train the bases again")
+        require(np.isfinite(W).all() and np.isfinite(coords).all(), f"{path}: W holds NaN or infinite values; train the bases again")
+        gram = W.T @ W
+        require(np.abs(gram - np.eye(len(gram))).max() < 1e-6, f"{path}: W's columns are not orthonormal; train the bases again")
 
     def on(self, problem: InverseProblem) -> np.ndarray:
         """W on this problem's loaded nodes: the atlas numbering undone (the patient's
@@ -68,43 +85,78 @@ class Bases:
         return self.W
 
 
-def pca(examples: np.ndarray, rank: int) -> tuple[np.ndarray, np.ndarray]:
-    """(W, explained variance ratio) of example columns, uncentred, first ``rank``."""
-    U, s, _ = np.linalg.svd(examples, full_matrices=False)
-    energy = s**2 / max(np.sum(s**2), 1e-300)
-    return U[:, :rank], energy[:rank]
+def pca(examples: np.ndarray, rank: int, first: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(W, explained variance ratio) of example columns, uncentred, first ``rank``.
+
+    ``first``: orthonormal columns kept in the span before anything else (as many as
+    ``rank`` allows); the principal directions of what they leave unexplained follow.
+    """
+    total = max(float(np.sum(examples**2)), 1e-300)
+    kept = np.zeros((len(examples), 0)) if first is None else first[:, :rank]
+    rest = examples - kept @ (kept.T @ examples)
+    U, _, _ = np.linalg.svd(rest, full_matrices=False)
+    W = np.hstack([kept, U[:, : rank - kept.shape[1]]])
+    return W, np.sum((W.T @ examples) ** 2, axis=1) / total
 
 
-def example_target(problem: InverseProblem, path: Path) -> Target:
+def example_target(problem: InverseProblem, path: Path) -> SurfaceTerm:
     """A training target: one surface file, or a folder of surface_<group>.vtp files."""
     scene = problem.scene
     if path.is_dir():
         files = [path / f"surface_{g}.vtp" for g in scene.matched]
         missing = [str(f) for f in files if not f.is_file()]
         require(not missing, f"{path}: example folder lacks {', '.join(missing)}")
-        return Target([read_surface(f, scene.gdim) for f in files], problem.matched_groups())
-    return Target([read_surface(path, scene.gdim)], np.zeros(problem.matched.total, int))
+        return SurfaceTerm([read_surface(f, scene.gdim) for f in files], problem.node_groups())
+    return SurfaceTerm([read_surface(path, scene.gdim)], np.zeros(len(problem.matched_coords), int))
 
 
-def example_displacements(problem: InverseProblem, targets, say=print) -> np.ndarray:
+def example_displacements(problem: InverseProblem, targets) -> np.ndarray:
     """(force_dofs, n) loaded-node displacements that surface matching finds per example."""
     columns = []
     for i, target in enumerate(targets, 1):
-        u = match_surface(problem.matched_coords, problem.matched_groups(), target)
-        columns.append(problem.on_loaded(problem.load(u, problem.matched)))
-        say(f"  example {i}/{len(targets)} matched: max |u| on the loaded nodes {np.abs(columns[-1]).max():.3g}")
+        u = match_surface(problem.matched_coords, problem.node_groups(), target)
+        columns.append(problem.forward.on_loaded(problem.observation.node_field(u)))
+        log.info(f"  example {i}/{len(targets)} matched: max |u| on the loaded nodes {np.abs(columns[-1]).max():.3g}")
     return np.stack(columns, axis=1)
 
 
-def train_bases(problem: InverseProblem, example_paths, rank: int, say=print) -> Bases:
-    require(len(example_paths) > 0, "train: give at least one --examples file or folder")
+def train_bases(problem: InverseProblem, example_paths, rank: int, generator=None) -> Bases:
+    """PCA of the loaded-wall displacements of example targets (surface-matched) and/or
+    of synthetic examples (synthetic.Generator)."""
+    require(len(example_paths) > 0 or generator is not None, "train: give --examples or --synthetic N")
     require(rank >= 1, f"--rank must be >= 1, got {rank}")
-    rank = min(rank, len(example_paths), problem.force_dofs)
-    targets = [example_target(problem, Path(p)) for p in example_paths]
-    data = example_displacements(problem, targets, say)
-    W, variance = pca(data, rank)
+    columns = []
+    if example_paths:
+        columns.append(example_displacements(problem, [example_target(problem, Path(p)) for p in example_paths]))
+    first = None
+    if generator is not None:
+        from fenics_elasto.synthetic import affine_basis, synthetic_examples
+
+        columns.append(synthetic_examples(problem, generator))
+        first = affine_basis(problem)
+    data = np.concatenate(columns, axis=1)
+    require(np.isfinite(data).all(), "train: an example's displacement is not finite")
+    limit = data.shape[1] + (0 if first is None else first.shape[1])
+    W, variance = pca(data, min(rank, limit, problem.force_dofs), first)
     coords = problem.loaded.gather(problem.loaded.coords)
-    return Bases(W, variance, coords, len(example_paths))
+    return Bases(W, variance, coords, data.shape[1], held_out=held_out_energy(data, W.shape[1], first))
+
+
+def held_out_energy(data: np.ndarray, rank: int, first=None, folds: int = 5) -> float | None:
+    """The share of the energy of examples left out of the training that rank-``rank``
+    bases keep (5-fold cross-validation): the bases' reach beyond their own examples.
+    (On its own examples a rank equal to their number keeps 100 %, always.)"""
+    n = data.shape[1]
+    if n < 2:
+        return None
+    kept = total = 0.0
+    for fold in np.array_split(np.random.default_rng(0).permutation(n), min(folds, n)):
+        rest = np.setdiff1d(np.arange(n), fold)
+        W, _ = pca(data[:, rest], min(rank, len(rest) + (0 if first is None else first.shape[1])), first)
+        left = data[:, fold]
+        kept += float(np.sum((W.T @ left) ** 2))
+        total += float(np.sum(left**2))
+    return kept / total if total > 0 else None
 
 
 def load_bases(path: Path, problem: InverseProblem, rank: int | None) -> np.ndarray:
@@ -187,7 +239,7 @@ def from_atlas(field: np.ndarray, order: np.ndarray) -> np.ndarray:
     return out
 
 
-def train_atlas_bases(atlas: dict, patients, rank: int, say=print) -> Bases:
+def train_atlas_bases(atlas: dict, patients, rank: int) -> Bases:
     """One PCA of every patient's example displacements, in atlas numbering.
 
     ``patients``: (InverseProblem on a mesh built around the atlas, example paths) each.
@@ -196,9 +248,9 @@ def train_atlas_bases(atlas: dict, patients, rank: int, say=print) -> Bases:
     columns = []
     for i, (patient, examples) in enumerate(patients, 1):
         order = atlas_order(patient, atlas)
-        data = example_displacements(patient, [example_target(patient, Path(p)) for p in examples], lambda *_: None)
+        data = example_displacements(patient, [example_target(patient, Path(p)) for p in examples])
         columns.append(to_atlas(data, order))
-        say(f"  patient {i}/{len(patients)}: {len(examples)} examples in atlas numbering")
+        log.info(f"  patient {i}/{len(patients)}: {len(examples)} examples in atlas numbering")
     data = np.concatenate(columns, axis=1)
     W, variance = pca(data, min(rank, data.shape[1]))
     scene = patients[0][0].scene

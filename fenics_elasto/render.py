@@ -74,39 +74,49 @@ def _shared_range(meshes) -> tuple[float, float]:
     return (0.0, top if top > 0 else 1.0)
 
 
-def render_folder(folder: Path, out: Path | None = None) -> Path:
-    """Re-draw a result folder from its saved surfaces (``surface_<group>.vtp``, ``target.vtp``)."""
-    import pyvista as pv
-
+def read_result_folder(folder: Path) -> dict:
+    """The saved surfaces of a result folder (``surface_<group>.vtp``, ``target.vtp``) as
+    ``render`` arguments; a folder without them, or with unreadable ones: one line."""
     from fenics_elasto.errors import require
+    from fenics_elasto.surface import read_polydata
 
     folder = Path(folder)
+    require(folder.is_dir(), f"{folder}: no such result folder")
     files = sorted(folder.glob("surface_*.vtp"))
     require(bool(files), f"{folder}: no surface_*.vtp files (is it a result folder?)")
-    groups = {f.stem.removeprefix("surface_"): pv.read(f) for f in files}
-    dim = 2 if all(np.allclose(m.points[:, 2], 0) for m in groups.values()) else 3
-    target = pv.read(folder / "target.vtp") if (folder / "target.vtp").is_file() else None
+    groups = {f.stem.removeprefix("surface_"): read_polydata(f) for f in files}
+    target = read_polydata(folder / "target.vtp") if (folder / "target.vtp").is_file() else None
     for mesh in groups.values():
         if "|u|" not in mesh.point_data:
             mesh.point_data["|u|"] = np.zeros(mesh.n_points)
-    return render(Path(out or folder / "screenshot.png"), groups, target=target, title=folder.name, dim=dim)
+    dim = 2 if all(np.allclose(m.points[:, 2], 0) for m in groups.values()) else 3
+    return {"groups": groups, "target": target, "title": folder.name, "dim": dim}
+
+
+def render_folder(folder: Path, out: Path) -> Path:
+    """Re-draw a result folder from its saved surfaces."""
+    return render(Path(out), **read_result_folder(folder))
 
 
 def target_polydata(problem):
-    """The target as a pyvista mesh (surfaces padded to 3D; landmarks as points)."""
+    """The target as a pyvista mesh: its surfaces padded to 3D, and its landmarks as
+    vertices (observed positions)."""
     import pyvista as pv
 
-    target = problem.target
-    if target.landmark_nodes is not None:
-        pts = np.zeros((len(target.landmark_points), 3))
-        pts[:, : problem.gdim] = target.landmark_points
-        return pv.PolyData(pts)
+    from fenics_elasto.misfit import PointTerm, SurfaceTerm
+
     meshes = []
-    for surface in target.surfaces:
-        pts = np.zeros((len(surface.points), 3))
-        pts[:, : surface.dim] = surface.points
-        conn = np.hstack([np.full((len(surface.cells), 1), surface.cells.shape[1]), surface.cells]).ravel()
-        meshes.append(pv.PolyData(pts, lines=conn) if surface.cells.shape[1] == 2 else pv.PolyData(pts, faces=conn))
+    for term in problem.misfit.terms:
+        if isinstance(term, SurfaceTerm):
+            for surface in term.surfaces:
+                pts = np.zeros((len(surface.points), 3))
+                pts[:, : surface.dim] = surface.points
+                conn = np.hstack([np.full((len(surface.cells), 1), surface.cells.shape[1]), surface.cells]).ravel()
+                meshes.append(pv.PolyData(pts, lines=conn) if surface.cells.shape[1] == 2 else pv.PolyData(pts, faces=conn))
+        elif isinstance(term, PointTerm) and len(term.points):
+            pts = np.zeros((len(term.points), 3))
+            pts[:, : term.points.shape[1]] = term.points
+            meshes.append(pv.PolyData(pts))
     return pv.merge(meshes) if len(meshes) > 1 else meshes[0]
 
 

@@ -19,6 +19,7 @@ from dolfinx import fem
 from fenics_elasto.elasticity import ElasticModel
 from fenics_elasto.errors import require
 from fenics_elasto.io import write_landmarks
+from fenics_elasto.observation import probe
 from fenics_elasto.scene import Scene
 
 
@@ -48,6 +49,7 @@ def simulate(scene: Scene, model: ElasticModel | None = None) -> Simulation:
     start = time.perf_counter()
     model = model or ElasticModel(scene)
     require(scene.load or scene.displacement, f"{scene.path}: nothing to simulate: add [boundary.load] or [boundary.displacement]")
+    require(scene.fixed or scene.displacement, f"{scene.path}: boundary.fixed is empty: clamp at least one group (rigid motions)")
     E, nu = material_values(scene)
     clamped = model.clamped_dofs(scene.fixed + list(scene.displacement))
     rhs = None
@@ -55,7 +57,7 @@ def simulate(scene: Scene, model: ElasticModel | None = None) -> Simulation:
         tractions = {g: total / model.group_measure(g) for g, total in scene.load.items()}
         rhs = model.traction_vector(tractions)
     prescribed = prescribed_function(model, scene.displacement) if scene.displacement else None
-    u = model.solve(E, nu, clamped, rhs, prescribed)
+    u = model.solve(model.coefficients(E, nu), clamped, rhs, prescribed)
     magnitude = np.linalg.norm(u.x.array.reshape(-1, model.bs)[: model.n_owned_blocks], axis=1)
     result = {
         "materials": {m.name: {"E": m.E.value, "nu": m.nu.value} for m in scene.materials},
@@ -66,38 +68,6 @@ def simulate(scene: Scene, model: ElasticModel | None = None) -> Simulation:
         "wall_time_s": round(time.perf_counter() - start, 3),
     }
     return Simulation(model, u, result)
-
-
-def probe(u: fem.Function, points: np.ndarray) -> np.ndarray:
-    """u at arbitrary points (every rank gets all values).
-
-    A point a hair outside the mesh (a coarse mesh's boundary node against a finer
-    mesh's facets) takes the value of the closest cell's polynomial.
-    """
-    import dolfinx.geometry as geo
-
-    mesh = u.function_space.mesh
-    tdim, gdim = mesh.topology.dim, mesh.geometry.dim
-    pts = np.zeros((len(points), 3))
-    pts[:, :gdim] = points
-    n_local = mesh.topology.index_map(tdim).size_local
-    owned = np.arange(n_local, dtype=np.int32)
-    tree = geo.bb_tree(mesh, tdim, entities=owned)
-    midpoints = geo.create_midpoint_tree(mesh, tdim, owned)
-    cells = geo.compute_closest_entity(tree, midpoints, mesh, pts)
-    found = cells >= 0
-    distance = np.full(len(pts), np.inf)
-    values = np.zeros((len(pts), gdim))
-    if found.any():
-        distance[found] = np.sqrt(geo.squared_distance(mesh, tdim, cells[found], pts[found]))
-        values[found] = u.eval(pts[found], cells[found])
-    # Each point from the rank whose cell is closest.
-    best = mesh.comm.allreduce(distance, op=MPI.MIN)
-    mine = found & (distance == best)
-    claim = mesh.comm.allreduce(np.where(mine, mesh.comm.rank, mesh.comm.size), op=MPI.MIN)
-    values[claim != mesh.comm.rank] = 0.0
-    return mesh.comm.allreduce(values, op=MPI.SUM)
-
 
 
 def write_landmarks_for(scene: Scene, u: fem.Function, path: Path, noise: float = 0.0, seed: int = 0) -> Path:

@@ -12,11 +12,13 @@ equal to 1e-15.
 
 from __future__ import annotations
 
+import logging
+import warnings
+from contextlib import contextmanager
 from pathlib import Path
 
 import igl
 import numpy as np
-from scipy.spatial import cKDTree
 
 from fenics_elasto.errors import UserError, require
 
@@ -111,15 +113,47 @@ class Surface:
 # --------------------------------------------------------------------------- targets
 
 
+@contextmanager
+def quiet_vtk():
+    """VTK's messages (pyvista hands them to the root logger) and pyvista's warnings kept
+    from the terminal; yields the list of VTK messages, for an error line."""
+    root = logging.getLogger()
+    messages: list[str] = []
+
+    class Keep(logging.Handler):
+        def emit(self, record):
+            messages.append(record.getMessage().splitlines()[0])
+
+    saved, root.handlers = root.handlers, [Keep()]  # a handler there: no basicConfig on logging.error
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            yield messages
+    finally:
+        root.handlers = saved
+
+
+def read_polydata(path: Path, what: str = "surface"):
+    """Any mesh file pyvista/meshio reads, quietly; unreadable or empty: one line."""
+    import pyvista as pv
+
+    path = Path(path)
+    require(path.is_file(), f"{path}: no such {what} file")
+    with quiet_vtk() as messages:
+        try:
+            mesh = pv.read(str(path))
+        except Exception as err:  # readers raise many kinds
+            raise UserError(f"{path}: cannot read the {what} ({str(err).splitlines()[0] if str(err) else type(err).__name__})") from None
+    require(mesh is not None and mesh.n_points > 0,
+            f"{path}: cannot read the {what}" + (f" ({messages[0]})" if messages else " (no points)"))
+    return mesh
+
+
 def read_surface(path: Path, gdim: int) -> Surface:
     """A target surface from any file meshio/pyvista reads: triangles in 3D, lines in 2D."""
     import pyvista as pv
 
-    require(path.is_file(), f"{path}: no such target file")
-    try:
-        mesh = pv.read(str(path))
-    except Exception as err:  # readers raise many kinds
-        raise UserError(f"{path}: cannot read the target surface ({err})") from None
+    mesh = read_polydata(path, "target surface")
     if not isinstance(mesh, pv.PolyData):
         mesh = mesh.extract_surface(algorithm=None) if gdim == 3 else mesh.extract_feature_edges()
     points = np.asarray(mesh.points, float)
@@ -168,70 +202,3 @@ def _is_numeric_line(line: str) -> bool:
         return True
     except ValueError:
         return False
-
-
-class Target:
-    """Residuals r_l = x_l - target(x_l) for the matched nodes, in global node order.
-
-    ``surfaces``: one Surface per matched node (indices into ``surface_of``), or
-    landmarks: fixed target points for a subset of nodes (others contribute nothing).
-    """
-
-    def __init__(self, surfaces: list[Surface], surface_of: np.ndarray, landmark_nodes=None, landmark_points=None):
-        self.surfaces = surfaces
-        self.surface_of = surface_of
-        self.landmark_nodes = landmark_nodes
-        self.landmark_points = landmark_points
-
-    def closest(self, x: np.ndarray) -> np.ndarray:
-        """The corresponding target point of every node (x itself where there is none)."""
-        if self.landmark_nodes is not None:
-            out = x.copy()
-            out[self.landmark_nodes] = self.landmark_points
-            return out
-        out = np.empty_like(x)
-        for i, surface in enumerate(self.surfaces):
-            rows = np.flatnonzero(self.surface_of == i)
-            out[rows] = surface.closest(x[rows])
-        return out
-
-    def residual(self, x: np.ndarray) -> np.ndarray:
-        return x - self.closest(x)
-
-    def curvature_directions(self, x: np.ndarray) -> np.ndarray:
-        """(n, dim, dim): rows spanning each node's Gauss-Newton curvature of 1/2 |r|^2."""
-        out = np.zeros(x.shape + (x.shape[1],))
-        if self.landmark_nodes is not None:
-            out[self.landmark_nodes] = np.eye(x.shape[1])
-            return out
-        for i, surface in enumerate(self.surfaces):
-            rows = np.flatnonzero(self.surface_of == i)
-            out[rows] = surface.curvature_directions(x[rows])
-        return out
-
-
-def load_target(scene, matched_coords: np.ndarray, matched_group: np.ndarray) -> Target:
-    """The [target] of a scene for its matched nodes (global order, on every rank).
-
-    ``matched_group``: index into ``scene.matched`` of each node's group.
-    """
-    spec = scene.config.get("target")
-    where = f"{scene.path}: [target]"
-    require(isinstance(spec, dict) and spec, f"{where}: missing; give surface, surfaces or landmarks")
-    base = scene.path.parent
-    keys = [k for k in ("surface", "surfaces", "landmarks") if k in spec]
-    require(len(keys) == 1, f"{where}: give exactly one of surface, surfaces, landmarks")
-    if "landmarks" in spec:
-        source, points = read_landmarks(base / spec["landmarks"], scene.gdim)
-        nodes = cKDTree(matched_coords).query(source)[1]
-        require(len(np.unique(nodes)) == len(nodes), f"{base / spec['landmarks']}: two landmarks snap to the same matched node")
-        return Target([], np.zeros(len(matched_coords), int), nodes, points)
-    if "surface" in spec:
-        return Target([read_surface(base / spec["surface"], scene.gdim)], np.zeros(len(matched_coords), int))
-    surfaces = spec["surfaces"]
-    require(isinstance(surfaces, dict), f"{where}.surfaces: expected a table group = file")
-    missing = [g for g in scene.matched if g not in surfaces]
-    require(not missing, f"{where}.surfaces: no surface for matched group(s) {missing}")
-    unknown = [g for g in surfaces if g not in scene.matched]
-    require(not unknown, f"{where}.surfaces: {unknown} not in boundary.matched")
-    return Target([read_surface(base / surfaces[g], scene.gdim) for g in scene.matched], matched_group)

@@ -20,6 +20,7 @@ from __future__ import annotations
 import numpy as np
 from mpi4py import MPI
 
+from fenics_elasto.elasticity import combine
 from fenics_elasto.objective import InverseProblem
 
 
@@ -29,20 +30,21 @@ class MaterialSurrogate:
     def __init__(self, problem: InverseProblem, basis: np.ndarray):
         self.problem = problem
         self.comm = problem.scene.comm
-        self.terms = problem.stiffness_terms()
-        lift = problem.lift(basis)
+        self.forward = problem.forward
+        self.terms = problem.model.terms
+        lift = self.forward.lift(basis)
         self.G = lift.getDenseArray().copy()
         self.MG = [self._apply(M, lift) for M in self.terms]
         lift.destroy()
         self.free = np.ones(len(self.G), bool)
-        self.free[problem.clamped_boundary] = False
-        self.matched_G = problem.matched_rows(self.G)
+        self.free[self.forward.clamped_boundary] = False
+        self.matched_G = problem.observation.rows(self.G)
         r = self.G.shape[1]
         self.V = np.zeros((len(self.G), 0))
         self.MV = [np.zeros((len(self.G), 0)) for _ in self.terms]
         self.VMV = [np.zeros((0, 0)) for _ in self.terms]
         self.VMG = [np.zeros((0, r)) for _ in self.terms]
-        self.matched_V = problem.matched_rows(self.V)
+        self.matched_V = problem.observation.rows(self.V)
         self.snapshots = []  # theta of every snapshot added
 
     # --- distributed linear algebra on owned rows
@@ -87,7 +89,7 @@ class MaterialSurrogate:
             self.VMG[j] = np.vstack([self.VMG[j], self._dot(Q, self.MG[j])])
             self.MV[j] = np.hstack([self.MV[j], MQ[j]])
         self.V = np.hstack([self.V, Q])
-        self.matched_V = np.concatenate([self.matched_V, self.problem.matched_rows(Q)], axis=2)
+        self.matched_V = np.concatenate([self.matched_V, self.problem.observation.rows(Q)], axis=2)
         self.snapshots.append(np.array(theta, float))
         return int(keep.sum())
 
@@ -95,24 +97,20 @@ class MaterialSurrogate:
 
     def coefficients(self, theta) -> np.ndarray:
         """a (size, r): the reduced coordinates of the mode fields at theta."""
-        c, _ = self.problem.stiffness_coefficients(theta)
-        return self._solve(c)[1]
+        return self._solve(self.forward.coefficients(theta)[0])[1]
 
     def _solve(self, c):
-        K = sum(cj * M for cj, M in zip(c, self.VMV))
-        F = sum(cj * M for cj, M in zip(c, self.VMG))
-        return K, -np.linalg.solve(K, F)
+        K = combine(c, self.VMV)
+        return K, -np.linalg.solve(K, combine(c, self.VMG))
 
     def response(self, theta) -> tuple[np.ndarray, np.ndarray]:
         """J (n_matched, gdim, r) and dJ/dtheta (n_estimated, n_matched, gdim, r)."""
-        c, dc = self.problem.stiffness_coefficients(theta)
+        c, dc = self.forward.coefficients(theta)
         K, a = self._solve(c)
         J = self.matched_G + self.matched_V @ a
         dJ = []
         for dck in dc:
-            dK = sum(d * M for d, M in zip(dck, self.VMV))
-            dF = sum(d * M for d, M in zip(dck, self.VMG))
-            dJ.append(self.matched_V @ -np.linalg.solve(K, dK @ a + dF))
+            dJ.append(self.matched_V @ -np.linalg.solve(K, combine(dck, self.VMV) @ a + combine(dck, self.VMG)))
         return J, np.array(dJ)
 
     def fields(self, theta) -> np.ndarray:
@@ -121,9 +119,9 @@ class MaterialSurrogate:
 
     def residual(self, theta) -> float:
         """||K(theta)(G + V a)|| on the free DOFs relative to ||K(theta) G|| there: 0 is exact."""
-        c, _ = self.problem.stiffness_coefficients(theta)
+        c = self.forward.coefficients(theta)[0]
         a = self._solve(c)[1]
-        load = sum(cj * MG for cj, MG in zip(c, self.MG))
-        R = load + sum(cj * (MV @ a) for cj, MV in zip(c, self.MV))
+        load = combine(c, self.MG)
+        R = load + combine(c, self.MV) @ a
         return float(np.sqrt(np.sum(self._dot(R[self.free], R[self.free]).diagonal())
                              / max(np.sum(self._dot(load[self.free], load[self.free]).diagonal()), 1e-300)))

@@ -32,7 +32,7 @@ def _letter_target(tmp_path, nu):
 def test_letter_a_recovers_poisson_ratio(letter_source, tmp_path, nu):
     target = _letter_target(tmp_path, nu)
     problem = InverseProblem(load_scene(letter_source, [f"target.surface='{target}'"]))
-    result, _, _ = estimate(problem, say=lambda *_: None)
+    result = estimate(problem)
     found = result["materials"]["letter"]["nu"]
     assert abs(found - nu) / nu < 0.02, found
     assert result["objective"]["final"] < 1e-2 * result["objective"]["undeformed"]
@@ -46,7 +46,7 @@ def test_inclusion_recovers_E_ratio(tmp_path, ratio):
     targets = {g: str(tmp_path / "fine" / "target" / f"surface_{g}.vtp") for g in ("outline", "interface")}
     table = ", ".join(f"{g}='{f}'" for g, f in targets.items())
     problem = InverseProblem(load_scene(source, [f"target.surfaces={{{table}}}"]))
-    result, _, _ = estimate(problem, say=lambda *_: None)
+    result = estimate(problem)
     found = result["materials"]["inclusion"]["E"] / result["materials"]["matrix"]["E"]
     assert abs(found - ratio) / ratio < 0.03, found
 
@@ -64,7 +64,7 @@ def test_noisy_target_bounded_error(letter_source, tmp_path):
     surface.points[:, :2] += scale * rng.standard_normal((surface.n_points, 2))
     surface.save(tmp_path / "noisy.vtp")
     problem = InverseProblem(load_scene(letter_source, [f"target.surface='{tmp_path / 'noisy.vtp'}'"]))
-    result, _, _ = estimate(problem, say=lambda *_: None)
+    result = estimate(problem)
     error = abs(result["materials"]["letter"]["nu"] - nu) / nu
     print(f"1 % noise: nu error {100 * error:.2f} %")
     assert error < 0.05

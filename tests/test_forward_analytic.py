@@ -43,7 +43,7 @@ def solve_cantilever(tmp_path, h, degree):
     exact = model.function("exact")
     exact.interpolate(lambda p: np.stack(timoshenko(p[0], p[1])))
     clamped = model.clamped_dofs(["support"])
-    u = model.solve(*material_values(scene), clamped, rhs, prescribed=exact)
+    u = model.solve(model.coefficients(*material_values(scene)), clamped, rhs, prescribed=exact)
     ux, uy = timoshenko(x[0], x[1])
     diff = u - ufl.as_vector([ux, uy])
     err = np.sqrt(mesh.comm.allreduce(fem.assemble_scalar(fem.form(ufl.inner(diff, diff) * ufl.dx)), op=MPI.SUM))
@@ -123,7 +123,7 @@ def test_lame_sphere_internal_pressure(tmp_path):
         n = ufl.FacetNormal(mesh)
         rhs = model.assemble_load(-p * ufl.inner(n, ufl.TestFunction(model.V)) * ds(1))
         clamped = model.clamped_dofs(["outer"])
-        u = model.solve(*material_values(scene), clamped, rhs, prescribed_function(model, scene.displacement))
+        u = model.solve(model.coefficients(*material_values(scene)), clamped, rhs, prescribed_function(model, scene.displacement))
         x = ufl.SpatialCoordinate(mesh)
         r = ufl.sqrt(ufl.dot(x, x))
         diff = u - u_r(r) * x / r

@@ -37,7 +37,7 @@ def test_linear_combination_equals_direct_assembly(phantom):
     direct = dolfinx.fem.petsc.assemble_matrix(
         fem.form(2 * mu_f * ufl.inner(eps(u), eps(v)) * ufl.dx + lam_f * ufl.div(u) * ufl.div(v) * ufl.dx))
     direct.assemble()
-    combined = model.stiffness(E, nu)
+    combined = model.stiffness(model.coefficients(E, nu))
     combined.axpy(-1.0, direct)
     assert combined.norm() / direct.norm() < 1e-12
 
@@ -109,11 +109,11 @@ def test_factorization_is_cached_and_counted(phantom):
     before = model.factorizations
     rhs = model.function("f")
     rhs.x.array[:] = 1.0
-    u1 = model.solve(E, nu, clamped, rhs.x.petsc_vec).x.array.copy()
-    u2 = model.solve(E, nu, clamped, rhs.x.petsc_vec).x.array.copy()
+    u1 = model.solve(model.coefficients(E, nu), clamped, rhs.x.petsc_vec).x.array.copy()
+    u2 = model.solve(model.coefficients(E, nu), clamped, rhs.x.petsc_vec).x.array.copy()
     assert model.factorizations == before + 1
     assert np.array_equal(u1, u2)
-    model.solve(E * 2, nu, clamped, rhs.x.petsc_vec)
+    model.solve(model.coefficients(E * 2, nu), clamped, rhs.x.petsc_vec)
     assert model.factorizations == before + 2
 
 

@@ -60,7 +60,7 @@ def test_inclusion_plane_stress_two_parameters(tmp_path):
     scene = load_scene(problem_path, ["plane='stress'", f"target={{landmarks='{landmarks}'}}",
                                       "materials.matrix.nu={estimate=true, initial=0.3, bounds=[0.0, 0.45]}"])
     problem = InverseProblem(scene)
-    assert problem.estimated == [("matrix", "nu"), ("inclusion", "E")]  # regions in tag order
+    assert problem.params.names == [("matrix", "nu"), ("inclusion", "E")]  # regions in tag order
     rng = np.random.default_rng(2)
     controls = 0.1 * rng.standard_normal(problem.force_dofs)
     check(problem, np.array([0.25, 40.0]), controls, "displacement", rng, eps_controls=0.1, eps_theta=0.1)
@@ -90,6 +90,6 @@ def test_response_matrix_is_the_linearised_forward_map(letter):
     q = rng.standard_normal(5)
     J = problem.response(theta, W)
     u = problem.evaluate_displacement(theta, W @ q).u
-    moved = problem.deformed_matched(u) - problem.matched_coords
+    moved = problem.observation.values(u)
     assert np.abs(np.einsum("ldr,r->ld", J, q) - moved).max() < 1e-12 * max(1.0, np.abs(moved).max())
     assert np.abs(moved).max() > 1e-3

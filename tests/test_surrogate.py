@@ -25,7 +25,7 @@ def inclusion(tmp_path_factory):
 
 def at(problem, E, nu):
     """theta in the problem's order of estimated constants (inclusion E, matrix nu)."""
-    return np.array([E if key == "E" else nu for _, key in problem.estimated])
+    return np.array([E if key == "E" else nu for _, key in problem.params.names])
 
 
 def relative_error(J, truth):
@@ -34,7 +34,7 @@ def relative_error(J, truth):
 
 def energy_norm(problem, theta, X):
     """sqrt(trace X^T K(theta) X) of owned-row columns X (serial)."""
-    K = problem.model.stiffness(*problem.materials(theta))
+    K = problem.model.stiffness(problem.forward.coefficients(theta)[0])
     return float(np.sqrt(sum(K.getValues(range(len(X)), range(len(X))) @ x @ x for x in X.T)))
 
 
@@ -44,12 +44,12 @@ def test_exact_at_snapshots_and_converging_between(inclusion):
     problem, W = inclusion
     surrogate = MaterialSurrogate(problem, W)
     probe = at(problem, 20.0, 0.35)
-    truth = problem.response_block(probe, W)
+    truth = problem.forward.response_block(probe, W)
     errors = []
     for E in (3.0, 30.0, 300.0):
         for nu in (0.15, 0.3, 0.43):
             theta = at(problem, E, nu)
-            surrogate.add(theta, problem.response_block(theta, W))
+            surrogate.add(theta, problem.forward.response_block(theta, W))
             J, _ = surrogate.response(theta)
             assert relative_error(J, problem.response(theta, W)) < 1e-8  # round-off of up to 36 directions
             assert surrogate.residual(theta) < 1e-8
@@ -57,7 +57,7 @@ def test_exact_at_snapshots_and_converging_between(inclusion):
     errors = np.array(errors) / energy_norm(problem, probe, truth)
     print("relative energy error at the probe after each snapshot:", errors)
     assert np.all(np.diff(errors) <= 1e-9) and errors[-1] < 1e-2, errors
-    assert relative_error(surrogate.response(probe)[0], problem.matched_rows(truth)) < 3e-3  # measured 1.0e-3
+    assert relative_error(surrogate.response(probe)[0], problem.observation.rows(truth)) < 3e-3  # measured 1.0e-3
     assert surrogate.residual(probe) < 1e-2  # the indicator is small where the error is
 
 
@@ -65,7 +65,7 @@ def test_derivatives_are_those_of_the_surrogate(inclusion):
     problem, W = inclusion
     surrogate = MaterialSurrogate(problem, W)
     for E, nu in ((5.0, 0.2), (200.0, 0.42), (30.0, 0.3)):
-        surrogate.add(at(problem, E, nu), problem.response_block(at(problem, E, nu), W))
+        surrogate.add(at(problem, E, nu), problem.forward.response_block(at(problem, E, nu), W))
     theta = at(problem, 17.0, 0.33)
     _, dJ = surrogate.response(theta)
     for k, h in enumerate(1e-4 * theta):
@@ -80,13 +80,13 @@ def test_estimate_on_the_surrogate_equals_the_full_outer_loop(tmp_path):
     fewer factorizations."""
     source, target = letter_case(tmp_path, 0.25, 0.35)
     problem = InverseProblem(load_scene(source, [f"target.surface='{target}'"]))
-    full, u, _ = estimate(problem, say=lambda *_: None)
+    full = estimate(problem)
     rng = np.random.default_rng(1)
-    W = np.linalg.qr(np.c_[problem.on_loaded(u), rng.standard_normal((problem.force_dofs, 5))])[0]
+    W = np.linalg.qr(np.c_[problem.forward.on_loaded(full.u), rng.standard_normal((problem.force_dofs, 5))])[0]
     plain = Options.from_scene(problem.scene)
     plain.surrogate = False
-    solved = estimate(InverseProblem(problem.scene), options=plain, say=lambda *_: None, basis=W)[0]
-    fast = estimate(InverseProblem(problem.scene), say=lambda *_: None, basis=W)[0]
+    solved = estimate(InverseProblem(problem.scene), options=plain, basis=W)
+    fast = estimate(InverseProblem(problem.scene), basis=W)
     nu_solved, nu_fast = solved["materials"]["letter"]["nu"], fast["materials"]["letter"]["nu"]
     print("nu every value solved", nu_solved, solved["factorizations"], "on the surrogate", nu_fast,
           fast["factorizations"])

@@ -1,0 +1,126 @@
+"""What each command does -- check the output, load, compute, write -- as functions the
+command line and Python scripts call alike (cli.py only parses and prints).
+
+Every command checks its output place first (outputs.py): a bad ``--out`` costs a
+second, not an estimate. Result folders are written atomically, ``result.json`` last.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from fenics_elasto.errors import require
+from fenics_elasto.logs import log
+from fenics_elasto.outputs import prepare_file, prepare_folder
+
+
+def reduced_basis(problem) -> np.ndarray | None:
+    """W from the scene's [reduction] table (bases file and rank), or None."""
+    from fenics_elasto.reduction import load_bases
+
+    table = problem.scene.config["reduction"]
+    return None if table is None else load_bases(problem.scene.path.parent / table["bases"], problem, table["rank"])
+
+
+def run_simulate(problem_path: Path, out: Path, overrides=()) -> dict:
+    from fenics_elasto.io import write_solution
+    from fenics_elasto.scene import load_scene
+    from fenics_elasto.simulate import simulate
+
+    with prepare_folder(out) as folder:
+        scene = load_scene(problem_path, overrides, command="simulate")
+        sim = simulate(scene)
+        with folder.writing(sim.result):
+            write_solution(folder, scene, sim.u, title=f"simulate: {Path(problem_path).parent.name}")
+    log.info(f"dofs {sim.result['dofs']}, max |u| {sim.result['max_displacement']:.4g}, "
+             f"{sim.result['wall_time_s']:.2f} s -> {out}")
+    return sim.result
+
+
+def run_estimate(problem_path: Path, out: Path, overrides=()):
+    """The ``estimate`` command: result.json, fields, surfaces, forces.csv, pictures."""
+    from fenics_elasto.estimate import estimate
+    from fenics_elasto.objective import InverseProblem
+    from fenics_elasto.scene import load_scene
+
+    with prepare_folder(out) as folder:
+        scene = load_scene(problem_path, overrides, command="estimate")
+        problem = InverseProblem(scene)
+        basis = reduced_basis(problem)
+        log.info(f"estimate {', '.join(problem.params.labels)}: {problem.model.num_dofs} dofs, {problem.force_dofs} "
+                 "force dofs" + (f" reduced to rank {basis.shape[1]}" if basis is not None else "")
+                 + f", {problem.observation.node_count} matched nodes"
+                 + (f", {len(problem.misfit.landmark_rows())} landmarks" if len(problem.misfit.landmark_rows()) else ""))
+        result = estimate(problem, basis=basis)
+        with folder.writing(result.record):
+            write_estimate(folder, problem, result)
+    distance = result["surface_distance"]
+    log.info(f"{title(result)}; rms distance {distance['rms']:.3g}, "
+             f"{result['factorizations']} factorizations, {result['wall_time_s']:.1f} s -> {out}")
+    return result
+
+
+def write_estimate(folder, problem, result) -> None:
+    """An estimate's files into an OutputFolder (inside its ``writing()``)."""
+    from fenics_elasto.io import point_csv, write_solution
+    from fenics_elasto.render import plot_convergence, target_polydata
+
+    scene = problem.scene
+    target = target_polydata(problem) if scene.comm.rank == 0 else None
+    write_solution(folder, scene, result.u, target=target, title=title(result))
+    points = problem.loaded.gather(problem.loaded.coords)
+    if scene.comm.rank == 0:
+        target.save(folder.path_for("target.vtp"))
+        plot_convergence(result.record, folder.path_for("convergence.png"))
+        folder.write_text("forces.csv", point_csv(points, result.forces.reshape(len(points), -1), "f"))
+
+
+def title(result) -> str:
+    return "estimate: " + ", ".join(f"{label} = {value:.4g}" for label, value in result.estimated.items())
+
+
+def run_train(patients: list, out: Path, rank: int, atlas_mesh: Path | None = None, overrides=(), generator=None):
+    """Bases from example targets: ``patients`` = [(problem.toml, [example, ...]), ...]
+    (several only around an atlas), and/or from synthetic examples of the scene
+    (``generator``: synthetic.Generator). Writes BASES.npz and its variance plot (.png)."""
+    from fenics_elasto.meshing import atlas_surfaces
+    from fenics_elasto.objective import InverseProblem
+    from fenics_elasto.reduction import train_atlas_bases, train_bases
+    from fenics_elasto.scene import load_scene
+
+    require(len(patients) == 1 or atlas_mesh, "train: several training scenes need --atlas (their shared mesh)")
+    for problem, examples in patients:
+        require(examples or generator is not None, f"train: no examples given for {problem}")
+    bases_file = prepare_file(out, ".npz")
+    picture = prepare_file(bases_file.path.with_suffix(".png"), ".png")
+    problems = [(InverseProblem(load_scene(p, overrides, command="train"), target=False), e) for p, e in patients]
+    count = sum(len(e) for _, e in problems)
+    log.info(f"train: {len(problems)} scene(s), {count} examples, {problems[0][0].force_dofs} force dofs, rank {rank}")
+    if atlas_mesh:
+        atlas = atlas_surfaces(atlas_mesh, problems[0][0].scene.loaded)
+        bases = train_atlas_bases(atlas, problems, rank)
+    else:
+        bases = train_bases(*problems[0], rank, generator)
+    return save_bases(bases, bases_file, picture)
+
+
+def save_bases(bases, bases_file, picture):
+    from fenics_elasto.render import plot_variance
+
+    bases_file.write(bases.save)
+    picture.write(lambda path: plot_variance(bases.variance, path))
+    reach = "" if bases.held_out is None else f"; {100 * bases.held_out:.1f} % of examples left out of the training"
+    log.info(f"wrote {bases_file.path} (rank {bases.W.shape[1]} of {bases.examples} examples: {100 * bases.variance.sum():.2f} "
+             f"% of their energy{reach}) and {picture.path}")
+    return bases
+
+
+def run_render(folder: Path, out: Path | None = None) -> Path:
+    from fenics_elasto.render import read_result_folder, render
+
+    saved = read_result_folder(folder)
+    picture = prepare_file(out or Path(folder) / "screenshot.png", ".png")
+    picture.write(lambda path: render(path, **saved))
+    log.info(f"wrote {picture.path}")
+    return picture.path

@@ -1,0 +1,114 @@
+"""The profile functional Phi*(theta) = min over the boundary controls (method.md §4).
+
+Phi* is what the outer loop minimises over the materials, in s = (log E, nu). Two
+implementations behind one interface, ``value_and_gradient(s)``:
+
+- ``Profile``: every value solved in full (a factorization of K(theta), then the inner
+  solver). Each solved theta is kept: a value within a hair of one solved before is
+  not solved again (L-BFGS-B re-evaluates its start and creeps by 1e-9 steps near the
+  optimum -- each step a factorization).
+- ``SurrogateProfile``: with reduced bases, Phi* on the reduced-basis response in the
+  materials (surrogate.py): J(theta) and dJ/dtheta from the solved snapshots, the
+  same Gauss-Newton fit, no factorization.
+
+For a clean function of theta the Gauss-Newton fit always starts from the same
+surface-matched controls q0 (no path dependence through warm starts), runs to a
+tight tolerance, and the prior it adds is in the value as in the gradient. By the
+envelope theorem dPhi*/dtheta is the partial derivative at the inner optimum.
+"""
+
+from __future__ import annotations
+
+
+import numpy as np
+
+from fenics_elasto.logs import log
+from fenics_elasto.inner import GaussNewton, InnerResult
+from fenics_elasto.interrupts import check_interrupt
+
+
+
+class Profile:
+    """Phi*(theta) with every value solved in full; keeps every solved point."""
+
+    def __init__(self, problem, inner, basis=None, surrogate=None, same_within: float = 1e-6):
+        self.problem = problem
+        self.params = problem.params
+        self.inner = inner
+        self.basis = basis
+        self.surrogate = surrogate  # fed with the mode fields of every solve
+        self.same_within = same_within
+        self.solved: list[tuple[np.ndarray, InnerResult, str]] = []  # (s, result, stage)
+        self.inner_iterations = 0
+        self.unconverged = 0
+
+    # --- solving
+
+    def response(self, theta) -> np.ndarray:
+        """J(theta) in full (one factorization); a snapshot for the surrogate."""
+        if self.surrogate is None:
+            return self.problem.response(theta, self.basis)
+        X = self.problem.forward.response_block(theta, self.basis)
+        self.surrogate.add(theta, X)
+        return self.problem.observation.rows(X)
+
+    def known(self, s) -> InnerResult | None:
+        for s_seen, result, _ in self.solved:
+            if np.all(np.abs(np.asarray(s) - s_seen) < self.same_within):
+                return result
+        return None
+
+    def solve(self, theta, stage: str, start: np.ndarray | None = None) -> InnerResult:
+        s = self.params.to_s(theta)
+        result = self.known(s)
+        if result is not None:
+            return result
+        check_interrupt(self.problem.scene.comm)  # under MPI every rank stops here together
+        if isinstance(self.inner, GaussNewton):
+            result = self.inner.solve(theta, self.response, self.basis)
+        else:
+            result = self.inner.solve(theta, start if start is not None else self.best().controls)
+        self.inner_iterations += result.iterations
+        self.unconverged += not result.converged
+        self.solved.append((s, result, stage))
+        log.info(f"  {stage:5s} {self.params.describe(theta)}  Phi* = {result.value:.6e}  "
+                 f"({result.iterations} inner iterations{'' if result.converged else ', NOT converged'})")
+        return result
+
+    def value_and_gradient(self, s) -> tuple[float, np.ndarray]:
+        theta = self.params.to_theta(s)
+        result = self.solve(theta, "outer")
+        return result.value, result.evaluation.grad_theta * self.params.dtheta_ds(theta)
+
+    # --- what was found
+
+    def best(self) -> InnerResult:
+        return min((result for _, result, _ in self.solved), key=lambda r: r.value)
+
+    def best_theta(self) -> np.ndarray:
+        s, _, _ = min(self.solved, key=lambda item: item[1].value)
+        return self.params.to_theta(s)
+
+    def history(self) -> list[dict]:
+        return [{"stage": stage, "theta": list(map(float, self.params.to_theta(s))), "phi": result.value,
+                 "misfit": result.evaluation.phi, "inner": result.iterations}
+                for s, result, stage in self.solved]
+
+
+class SurrogateProfile:
+    """Phi*(theta) on the reduced-basis response in the materials: dense algebra only."""
+
+    def __init__(self, profile: Profile):
+        self.profile = profile
+        self.params = profile.params
+        self.fit_inner: GaussNewton = profile.inner
+        self.evaluations = 0
+
+    def value_and_gradient(self, s) -> tuple[float, np.ndarray]:
+        theta = self.params.to_theta(s)
+        J, dJ = self.profile.surrogate.response(theta)
+        fit = self.fit_inner.fit(J)
+        self.evaluations += 1
+        g = self.fit_inner.misfit.gradient(fit.residual)
+        grad_theta = np.array([np.sum(g * (dJk @ fit.q)) for dJk in dJ])
+        return fit.phi + fit.prior, grad_theta * self.params.dtheta_ds(theta)

@@ -1,0 +1,175 @@
+"""The misfit between observed positions and the target (method.md §2).
+
+    Phi(y) = 1/2 sum_l w_l |r_l(y)|^2,   r_l = y_l - target_l(y_l)
+
+over the observation rows (observation.py): a matched node's target is the closest
+point of its target surface, a landmark's its observed position. Almost everywhere
+dPhi/dy_l = w_l r_l, and the Gauss-Newton curvature of 1/2 |r_l|^2 is spanned by the
+directions ``Surface.curvature_directions`` gives (the normal of a face, the two
+directions across an edge, all at a vertex; all for a landmark) -- exact for a
+piecewise-linear target, which makes Gauss-Newton a Newton method here.
+
+Weights: surface rows 1; landmark rows ``landmark_weight`` (see ``landmark_weight``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from fenics_elasto.errors import require
+from fenics_elasto.surface import Surface, read_landmarks, read_surface
+
+
+@dataclass
+class SurfaceTerm:
+    """Rows matched to surfaces: ``surface_of[l]`` indexes ``surfaces``."""
+
+    surfaces: list[Surface]
+    surface_of: np.ndarray
+
+    def residual(self, y: np.ndarray) -> np.ndarray:
+        return y - self.closest(y)
+
+    def closest(self, y: np.ndarray) -> np.ndarray:
+        out = np.empty_like(y)
+        for i, surface in enumerate(self.surfaces):
+            rows = np.flatnonzero(self.surface_of == i)
+            out[rows] = surface.closest(y[rows])
+        return out
+
+    def curvature_directions(self, y: np.ndarray) -> np.ndarray:
+        out = np.zeros(y.shape + (y.shape[1],))
+        for i, surface in enumerate(self.surfaces):
+            rows = np.flatnonzero(self.surface_of == i)
+            out[rows] = surface.curvature_directions(y[rows])
+        return out
+
+
+@dataclass
+class PointTerm:
+    """Rows with a fixed target point each (landmarks)."""
+
+    points: np.ndarray
+
+    def closest(self, y: np.ndarray) -> np.ndarray:
+        return self.points
+
+    def curvature_directions(self, y: np.ndarray) -> np.ndarray:
+        return np.broadcast_to(np.eye(y.shape[1]), y.shape + (y.shape[1],)).copy()
+
+
+class Unobserved:
+    """Rows that carry no data (the matched nodes of a landmark-only target)."""
+
+    def closest(self, y: np.ndarray) -> np.ndarray:
+        return y
+
+    def curvature_directions(self, y: np.ndarray) -> np.ndarray:
+        return np.zeros(y.shape + (y.shape[1],))
+
+
+class Misfit:
+    """Phi over consecutive blocks of observation rows, each with its term and weight."""
+
+    def __init__(self, blocks: list[tuple[int, object, float]]):
+        """``blocks``: (row count, SurfaceTerm | PointTerm, weight) in row order."""
+        self.terms = [term for _, term, _ in blocks]
+        bounds = np.cumsum([0] + [count for count, _, _ in blocks])
+        self.slices = [slice(a, b) for a, b in zip(bounds[:-1], bounds[1:])]
+        self.weights = np.concatenate([np.full(count, weight, float) for count, _, weight in blocks] or [np.zeros(0)])
+
+    @property
+    def count(self) -> int:
+        return len(self.weights)
+
+    def closest(self, y: np.ndarray) -> np.ndarray:
+        out = np.empty_like(y)
+        for rows, term in zip(self.slices, self.terms):
+            out[rows] = term.closest(y[rows])
+        return out
+
+    def residual(self, y: np.ndarray) -> np.ndarray:
+        """r_l = y_l - target_l(y_l), unweighted (a distance per row)."""
+        return y - self.closest(y)
+
+    def cost(self, residual: np.ndarray) -> float:
+        return 0.5 * float(np.sum(self.weights[:, None] * residual**2))
+
+    def gradient(self, residual: np.ndarray) -> np.ndarray:
+        """dPhi/dy = w r."""
+        return self.weights[:, None] * residual
+
+    def gauss_newton_rows(self, y: np.ndarray) -> np.ndarray:
+        """(n, gdim, gdim) sqrt(w) C_l: the Gauss-Newton curvature is sum_l J_l^T C_l^T C_l J_l w_l."""
+        out = np.zeros(y.shape + (y.shape[1],))
+        for rows, term in zip(self.slices, self.terms):
+            out[rows] = term.curvature_directions(y[rows])
+        return np.sqrt(self.weights)[:, None, None] * out
+
+    def landmark_rows(self) -> np.ndarray:
+        """Indices of the rows with a fixed target point (landmarks)."""
+        rows = [np.arange(s.start, s.stop) for s, t in zip(self.slices, self.terms) if isinstance(t, PointTerm)]
+        return np.concatenate(rows) if rows else np.zeros(0, int)
+
+    def surface_rows(self) -> np.ndarray:
+        rows = [np.arange(s.start, s.stop) for s, t in zip(self.slices, self.terms) if isinstance(t, SurfaceTerm)]
+        return np.concatenate(rows) if rows else np.zeros(0, int)
+
+    def distances(self, residual: np.ndarray) -> dict:
+        """rms / max / mean distance of the surface rows and of the landmark rows."""
+        out = {}
+        for name, rows in (("surface", self.surface_rows()), ("landmarks", self.landmark_rows())):
+            if len(rows):
+                d = np.linalg.norm(residual[rows], axis=1)
+                out[name] = {"rms": float(np.sqrt(np.mean(d**2))), "max": float(d.max()), "mean": float(d.mean())}
+        return out
+
+
+# --------------------------------------------------------------------------- from [target]
+
+
+def read_target_landmarks(scene) -> tuple[np.ndarray, np.ndarray] | None:
+    """(source points, observed points) of [target] landmarks, or None."""
+    spec = scene.config["target"] or {}
+    if spec.get("landmarks") is None:
+        return None
+    return read_landmarks(scene.path.parent / spec["landmarks"], scene.gdim)
+
+
+def landmark_weight(spec: dict, surface_rows: int, landmark_rows: int) -> float:
+    """The weight of a landmark row: ``[target] landmark_weight`` if given, else 1 -- each
+    observed coordinate counts alike, the maximum-likelihood weight when a landmark's
+    position is as certain as a surface point's."""
+    return float(spec["landmark_weight"] or 1.0)
+
+
+def build_misfit(scene, node_groups: np.ndarray, landmarks: tuple | None) -> Misfit:
+    """The scene's [target] as a Misfit over its observation rows.
+
+    ``node_groups``: index into ``scene.matched`` of each matched node (canonical order);
+    ``landmarks``: (source, observed) points, rows after the nodes, or None.
+    """
+    spec = scene.config["target"]
+    where = f"{scene.path}: [target]"
+    require(spec is not None, f"{where}: missing; give surface, surfaces and/or landmarks")
+    base = scene.path.parent
+    blocks = []
+    if spec["surface"] is not None:
+        blocks.append((len(node_groups), SurfaceTerm([read_surface(base / spec["surface"], scene.gdim)],
+                                                     np.zeros(len(node_groups), int)), 1.0))
+    elif spec["surfaces"] is not None:
+        surfaces = spec["surfaces"]
+        missing = [g for g in scene.matched if g not in surfaces]
+        require(not missing, f"{where}.surfaces: no surface for matched group(s) {missing}")
+        unknown = [g for g in surfaces if g not in scene.matched]
+        require(not unknown, f"{where}.surfaces: {unknown} not in boundary.matched")
+        terms = SurfaceTerm([read_surface(base / surfaces[g], scene.gdim) for g in scene.matched], node_groups)
+        blocks.append((len(node_groups), terms, 1.0))
+    else:  # landmarks alone: the matched nodes observe nothing
+        blocks.append((len(node_groups), Unobserved(), 0.0))
+    if landmarks is not None:
+        surface_rows = blocks[0][0] if blocks[0][2] > 0 else 0
+        blocks.append((len(landmarks[1]), PointTerm(landmarks[1]), landmark_weight(spec, surface_rows, len(landmarks[1]))))
+    return Misfit(blocks)
