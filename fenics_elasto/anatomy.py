@@ -230,11 +230,14 @@ def ellipsoid_shell(organs: list[Shell], margin: float, material: str) -> Shell:
     ``margin``, scaled until every organ point is at least ``margin`` inside it."""
     import igl
     import pyvista as pv
+    from scipy.spatial import ConvexHull
 
     inner = np.vstack([s.points for s in organs])
     low, high = inner.min(axis=0), inner.max(axis=0)
     centre, axes = (low + high) / 2, (high - low) / 2 + margin
-    sphere = pv.Icosphere(radius=1.0, nsub=5)
+    # the distance to a convex surface is concave inside it: least at a hull vertex
+    inner = inner[ConvexHull(inner).vertices]
+    sphere = pv.Icosphere(radius=1.0, nsub=4)
     unit = np.asarray(sphere.points, dtype=float)
     triangles = _outward(unit, sphere.faces.reshape(-1, 4)[:, 1:].astype(np.int64))
     scale = max(1.0, np.sqrt((((inner - centre) / axes) ** 2).sum(axis=1)).max())
@@ -270,13 +273,24 @@ def _body_shell(spec: dict, folder: Path, organs: list[Shell], say) -> Shell:
 # --------------------------------------------------------------------------- nesting
 
 
-def _gap(a: Shell, b: Shell) -> float:
-    """Smallest distance between the two surfaces (vertex to triangle, both ways)."""
+def _gap(a: Shell, b: Shell, enough: float) -> float:
+    """Smallest distance between the two surfaces (vertex to triangle, both ways), or
+    any distance above ``enough`` if they are further apart."""
     import igl
+    from scipy.spatial import cKDTree
 
+    between_vertices = cKDTree(a.points).query(b.points)[0].min()
+    longest = max(_longest_edge(a), _longest_edge(b))
+    if between_vertices - longest > enough:  # a closest point is within an edge of a vertex
+        return between_vertices
     ab = igl.point_mesh_squared_distance(a.points, b.points, b.triangles)[0].min()
     ba = igl.point_mesh_squared_distance(b.points, a.points, a.triangles)[0].min()
     return float(np.sqrt(min(ab, ba)))
+
+
+def _longest_edge(shell: Shell) -> float:
+    corners = shell.points[shell.triangles]
+    return float(np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2).max())
 
 
 def _contact(a: Shell, b: Shell, how: str) -> str:
@@ -301,7 +315,7 @@ def _check_apart(shells: list[Shell], gap: float) -> None:
             with quiet_vtk():
                 _, contacts = polys[i].collision(polys[j], contact_mode=1)
             require(contacts == 0, _contact(a, b, "intersect"))
-            distance = _gap(a, b)
+            distance = _gap(a, b, gap)
             require(distance >= gap, _contact(a, b, f"touch ({distance:.3g} apart, under organ_size / 10 = {gap:.3g})"))
 
 
@@ -321,7 +335,7 @@ def nest(shells: list[Shell], gap: float) -> list[int | None]:
         if shell.role == "body":
             require(outer is None, f"the body ({shell.label}) lies inside {outer.label if outer else ''}")
             continue
-        require(outer is not None, f"{shell.label} lies outside the body ({shells[0].label})")
+        require(outer is not None, f"{shell.label} lies outside the {shells[0].label}")
         require(outer.role != "cavity", f"{shell.label} lies inside {outer.label}: nothing can be inside a cavity")
         require(not (shell.role == "cavity" and outer.role == "region"),
                 f"{shell.label} lies inside {outer.label}: a cavity must be surrounded by the body's material")
