@@ -575,6 +575,8 @@ def problem_toml(spec: dict, shells: list[Shell], msh_name: str) -> str:
     if not patches:
         lines += ["# No [patches] in the spec: the whole outer boundary is clamped. Clamp only where the",
                   "# body is held (bones, a table) by giving patches and listing them here."]
+    if not cavities:
+        lines += ["# No cavities: nothing carries the unknown forces yet; list the facet groups that do."]
     lines += [f"fixed   = {_toml_list(fixed)}",
               f"loaded  = {_toml_list(cavities)}      # unknown forces on the cavity walls",
               f"matched = {_toml_list(matched)}",

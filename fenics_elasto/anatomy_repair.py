@@ -227,7 +227,7 @@ def _fill_holes(points, triangles, label, say):
     np.maximum.at(radius, hole_of_edge, np.linalg.norm(points[rim[:, 0]] - centre[hole_of_edge], axis=1))
     limit = HOLE_FRACTION * np.linalg.norm(np.ptp(points[np.unique(triangles)], axis=0))
     require(radius.max() <= limit, f"{label}: not a closed surface: an opening of radius {radius.max():.3g} "
-            f"(openings up to {limit:.3g}, 5 % of its size, are filled)")
+            f"at {_point(centre[np.argmax(radius)])} (openings up to {limit:.3g}, 5 % of its size, are filled)")
     fan = np.c_[rim[:, 1], rim[:, 0], n + hole_of_edge]
     say(f"{label}: filled {holes} hole(s) (largest radius {radius.max():.3g}, {len(rim)} rim edges)")
     return np.vstack([points, centre]), np.vstack([triangles, fan])
@@ -271,9 +271,10 @@ def closed_shells(path: Path, label: str, role: str, name: str, say=print) -> li
     triangles = _drop_bad_triangles(triangles, label, say)
     require(len(triangles) > 0, f"{label}: no triangles left after dropping collapsed ones")
     triangles = _drop_specks(points, triangles, label, say)
-    _, _, count = edge_use(triangles)
+    edges, _, count = edge_use(triangles)
     require(count.max() <= 2, f"{label}: {np.sum(count > 2)} edges are shared by more than two triangles "
-            "(non-manifold); cannot make it a closed surface")
+            f"(non-manifold, e.g. near {_point(points[edges[np.argmax(count)]].mean(axis=0))}); "
+            "cannot make it a closed surface")
     triangles = _orient_consistently(triangles, label, say)
     points, triangles = _fill_holes(points, triangles, label, say)
     _, _, count = edge_use(triangles)
@@ -283,8 +284,12 @@ def closed_shells(path: Path, label: str, role: str, name: str, say=print) -> li
     if crossing.any():
         where = points[triangles[crossing][0]].mean(axis=0)
         raise UserError(f"{label}: the surface passes through itself ({crossing.sum()} triangles, e.g. near "
-                        f"{np.array2string(where, precision=3, separator=', ')}); cannot use it")
+                        f"{_point(where)}); cannot use it")
     return [_shell(role, name, label, points, triangles[component == c]) for c in range(component.max() + 1)]
+
+
+def _point(x: np.ndarray) -> str:
+    return "(" + ", ".join(f"{v:.4g}" for v in x) + ")"
 
 
 def _shell(role, name, label, points, triangles) -> Shell:

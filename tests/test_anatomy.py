@@ -130,6 +130,7 @@ def test_patch_is_the_half_space_of_facet_centroids(sphere_in_box):
 def test_two_spheres_in_one_file_make_one_region(tmp_path):
     pair = sphere((-8, 0, 0), 5.0) + sphere((8, 0, 0), 5.0)
     spec = write(tmp_path, {"pair.stl": pair}, """
+units = "cm"
 size = 5.0
 organ_size = 2.0
 [body]
@@ -138,12 +139,33 @@ box = { margin = 6.0 }
 surface = "pair.stl"
 """)
     lines = []
-    areas, volumes, _ = measures(build_scene_from_spec(spec, tmp_path / "out", say=say_into(lines)))
-    assert "2 closed piece(s)" in lines[0]
+    problem = build_scene_from_spec(spec, tmp_path / "out", say=say_into(lines))
+    areas, volumes, _ = measures(problem)
+    assert "2 closed piece(s)" in lines[0] and lines[0].endswith("26 x 10 x 10 cm")
+    assert 'units = "cm"' in problem.read_text()
     assert set(volumes) == {"tissue", "pair"} and set(areas) == {"outer", "pair_surface"}
     assert areas["pair_surface"] == pytest.approx(2 * 4 * math.pi * 25, rel=3e-3)
     assert volumes["pair"] == pytest.approx(2 * 4 / 3 * math.pi * 125, rel=3e-3)
     assert volumes["tissue"] + volumes["pair"] == pytest.approx(38 * 22 * 22, rel=1e-9)
+
+
+def test_region_inside_a_region(tmp_path):
+    """A tumour inside a gland: the gland's volume is the shell between the two."""
+    spec = write(tmp_path, {"gland.stl": sphere((0, 0, 0), 8.0), "tumour.stl": sphere((2, 0, 0), 3.0)}, """
+size = 5.0
+organ_size = 2.0
+[body]
+box = { margin = 5.0 }
+[regions.gland]
+surface = "gland.stl"
+[regions.tumour]
+surface = "tumour.stl"
+""")
+    areas, volumes, _ = measures(build_scene_from_spec(spec, tmp_path / "out", say=lambda _: None))
+    # (a tumour of radius 3 meshed at 2: ~0.5 % short; a gland without its hole would be 6 % over)
+    assert volumes["tumour"] == pytest.approx(4 / 3 * math.pi * 27, rel=1e-2)
+    assert volumes["gland"] == pytest.approx(4 / 3 * math.pi * (512 - 27), rel=1e-2)
+    assert areas["tumour_surface"] == pytest.approx(4 * math.pi * 9, rel=1e-2)
 
 
 @pytest.mark.slow
