@@ -595,6 +595,15 @@ def problem_toml(spec: dict, shells: list[Shell], msh_name: str) -> str:
 # --------------------------------------------------------------------------- the command
 
 
+def _note_coarse_organs(organs: list[Shell], organ_size: float, units: str, say) -> None:
+    """A note (not an error: gmsh copes) where an organ is under three elements thick."""
+    for organ in organs:
+        thickness = np.ptp(organ.points, axis=0).min()
+        if organ_size > thickness / 3:
+            say(f"note: organ_size {organ_size:.3g} {units} is coarse for {organ.label} "
+                f"({thickness:.3g} {units} thick); its shape will be rough")
+
+
 def _sizes(spec: dict, body: Shell, size: float | None) -> tuple[float, float]:
     require(size is None or (math.isfinite(size) and size > 0), f"--size must be > 0, got {size}")
     size = size or spec["size"] or np.linalg.norm(np.ptp(body.points, axis=0)) / BODY_ELEMENTS
@@ -620,6 +629,7 @@ def build_scene_from_spec(spec_path, out, size: float | None = None, say=print) 
             require((shells[0].patches >> p & 1).any(),
                     f"{spec_path}: patches.{patch.name}: no part of the outer boundary has (c - point) . normal > 0")
     units = spec["units"]
+    _note_coarse_organs(organs, organ_size, units, say)
     say(f"meshing: element size {size:.3g} {units} in the body, {organ_size:.3g} {units} at the organs")
     counts = mesh_shells(shells, parents, patches, size, organ_size, out / "scene.msh")
     straight = f", {counts['kept_straight']} kept straight-sided" if counts["kept_straight"] else ""
