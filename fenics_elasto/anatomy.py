@@ -14,10 +14,14 @@ spec naming them into a gmsh scene and a ready ``problem.toml``:
    (conforming interfaces). The input triangulations are reparametrised by gmsh
    (``classifySurfaces`` + ``createGeometry``), so gmsh remeshes them at the sizes asked
    for -- ``organ_size`` at regions and cavities, growing to ``size`` in the body (a
-   Distance + Threshold field) -- and places the midpoints of the quadratic elements on
-   the input surfaces (curved geometry; checked: no element is inverted).
+   Distance + Threshold field). The quadratic elements' boundary midpoints go onto the
+   input surfaces (curved geometry); an element that this would invert keeps straight
+   edges (checked with gmsh's Jacobian, counted in the output).
 5. ``problem_toml`` writes every group, a default material per region and ready
    ``[boundary]`` lists.
+
+Lengths in the spec are in the files' unit (``units``: mm, cm or m), which is kept and
+recorded in problem.toml; nothing is rescaled (E ratios do not depend on it).
 
 Patches (``[patches.NAME] side = {point, normal}``) are the outer-boundary facets whose
 centroid c has (c - point) . normal > 0. The outer surface is cut along each patch
