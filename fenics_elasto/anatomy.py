@@ -465,13 +465,20 @@ def _surface_labels(message: str, shells: list[Shell], owned: list) -> str:
 
 
 def _generate(gmsh, shells: list[Shell], owned: list) -> None:
+    """Mesh the volumes; a failure (an exception, or errors logged and no tetrahedra)
+    is one line with gmsh's last error and the files behind the surfaces it names."""
+    gmsh.logger.start()
     try:
         gmsh.model.mesh.generate(3)
-    except Exception as err:  # gmsh raises a bare Exception carrying its last error
-        message = str(err)
-        raise UserError(f"gmsh could not mesh the scene{_surface_labels(message, shells, owned)} ({message}); "
-                        "organs close together need a smaller organ_size") from None
-    require(len(gmsh.model.mesh.getElementsByType(4)[0]) > 0, "gmsh made no tetrahedra; try a smaller size")
+        failed = not len(gmsh.model.mesh.getElementsByType(4)[0])
+    except Exception:  # gmsh raises a bare Exception carrying its last error
+        failed = True
+    errors = [line for line in gmsh.logger.get() if line.startswith("Error")]
+    gmsh.logger.stop()
+    if failed:
+        message = errors[-1].removeprefix("Error: ") if errors else "no tetrahedra"
+        raise UserError(f"gmsh could not mesh the scene{_surface_labels(' '.join(errors), shells, owned)} "
+                        f"({message}); surfaces too close for organ_size? try a smaller one")
 
 
 MIDPOINTS = ((0, 1), (1, 2), (2, 0))  # gmsh's 6-node triangle: corner pairs of nodes 3, 4, 5

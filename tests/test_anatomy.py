@@ -335,6 +335,23 @@ surface = "b.stl"
         expect_error(capsys, ["scene", spec, "--out", tmp_path / case / "out"], *words)
 
 
+def test_gmsh_failure_is_one_line_naming_a_file(tmp_path):
+    """Surfaces that cross (the checks before meshing bypassed): gmsh's own error, with
+    the file behind the surface it names, as a UserError."""
+    from fenics_elasto.anatomy import box_shell, mesh_shells
+    from fenics_elasto.anatomy_repair import Shell
+    from fenics_elasto.errors import UserError
+
+    def shell(centre, role, name):
+        s = sphere(centre, 5.0, nsub=3)
+        return Shell(role, name, f"{name}.stl", np.asarray(s.points), s.regular_faces.astype(np.int64))
+
+    body = box_shell(np.array([-12.0, -10, -10]), np.array([12.0, 10, 10]), "tissue")
+    with pytest.raises(UserError, match=r"gmsh could not mesh the scene near (a|b)\.stl .*intersection"):
+        mesh_shells([body, shell((-2, 0, 0), "region", "a"), shell((2, 0, 0), "cavity", "b")], [None, 0, 0], [],
+                    4.0, 1.5, tmp_path / "x.msh")
+
+
 @pytest.mark.parametrize("text, words", [
     ("organ_sise = 2.0", ["organ_sise", "did you mean 'organ_size'"]),
     ("size = 'big'", ["size", "expected a number > 0", "'big'"]),
