@@ -359,6 +359,7 @@ def test_gmsh_failure_is_one_line_naming_a_file(tmp_path):
     ("[patches.bones]\nside = { point = [0, 0], normal = [0, 1, 0] }", ["patches.bones.side.point", "3 numbers"]),
     ("[patches.bones]\nside = { point = [0, -99, 0], normal = [0, -1, 0] }", ["patches.bones", "no part of the outer"]),
     ("[cavities.a_surface]\nsurface = 'a.stl'", ["a_surface", "clashes"]),
+    ("organ_size = 9.0\nsize = 5.0", ["organ_size 9 is larger than size 5"]),
     ("[regions.b]\nsurfce = 'b.stl'", ["regions.b", "did you mean 'surface'"]),
 ])
 def test_refusals_of_bad_spec_keys(tmp_path, capsys, text, words):
@@ -406,7 +407,6 @@ def test_real_prostate_scene(tmp_path, capsys):
 @pytest.mark.slow
 def test_scene_from_surfaces_runs_simulate(tmp_path):
     spec = write(tmp_path, {"ball.stl": sphere((-7, 0, 0), 5.0), "hole.stl": sphere((7, 0, 0), 4.0)}, """
-size = 6.0
 organ_size = 2.5
 [body]
 box = { margin = 8.0 }
@@ -415,8 +415,9 @@ surface = "ball.stl"
 [cavities.hole]
 surface = "hole.stl"
 """)
-    proc = run_cli("scene", spec, "--out", tmp_path / "scene")
+    proc = run_cli("scene", spec, "--out", tmp_path / "scene", "--size", 6)
     assert proc.returncode == 0 and proc.stderr == "", proc.stderr
+    assert "element size 6 mm in the body, 2.5 mm at the organs" in proc.stdout
     proc = run_cli("simulate", tmp_path / "scene" / "problem.toml", "--out", tmp_path / "result")
     assert proc.returncode == 0, proc.stderr
     result = json.loads((tmp_path / "result" / "result.json").read_text())
