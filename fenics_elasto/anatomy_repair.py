@@ -192,10 +192,12 @@ def _drop_specks(points, triangles, label, say):
 def _orient_consistently(triangles, label, say):
     import igl
 
-    oriented, _ = igl.bfs_orient(triangles)
-    flipped = _reversed(triangles, oriented)
-    if 0 < flipped.sum():
-        say(f"{label}: re-oriented {min(flipped.sum(), (~flipped).sum())} triangles to agree with their neighbours")
+    oriented, component = igl.bfs_orient(triangles)
+    # each component follows its first triangle; count the ones that disagreed with the majority
+    flipped = np.bincount(component, weights=_reversed(triangles, oriented))
+    disagreeing = int(np.minimum(flipped, np.bincount(component) - flipped).sum())
+    if disagreeing:
+        say(f"{label}: re-oriented {disagreeing} triangles to agree with their neighbours")
     _, count = np.unique(row_keys(directed_edges(oriented)), return_counts=True)
     require((count == 1).all(), f"{label}: not orientable (a Moebius-like piece); cannot make it a closed surface")
     return oriented
