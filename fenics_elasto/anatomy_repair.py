@@ -282,12 +282,14 @@ def closed_shells(path: Path, label: str, role: str, name: str, say=print) -> li
     _, _, count = edge_use(triangles)
     require((count == 2).all(), f"{label}: cannot be made a closed surface ({np.sum(count != 2)} edges not shared by two triangles)")
     triangles, component = _orient_outward(points, triangles, label, say)
-    crossing = self_intersecting(points, triangles)
-    if crossing.any():
-        where = points[triangles[crossing][0]].mean(axis=0)
-        raise UserError(f"{label}: the surface passes through itself ({crossing.sum()} triangles, e.g. near "
-                        f"{_point(where)}); cannot use it")
-    return [_shell(role, name, label, points, triangles[component == c]) for c in range(component.max() + 1)]
+    shells = [_shell(role, name, label, points, triangles[component == c]) for c in range(component.max() + 1)]
+    for shell in shells:  # one by one: a piece inside another sees winding number 2, rightly
+        crossing = self_intersecting(shell.points, shell.triangles)
+        if crossing.any():
+            where = shell.points[shell.triangles[crossing][0]].mean(axis=0)
+            raise UserError(f"{label}: the surface passes through itself ({crossing.sum()} triangles, e.g. near "
+                            f"{_point(where)}); cannot use it")
+    return shells
 
 
 def _point(x: np.ndarray) -> str:

@@ -257,6 +257,15 @@ def test_duplicated_points_and_triangles_are_merged_and_reported(tmp_path):
     assert shells[0].volume == pytest.approx(ball.volume, rel=1e-9)
 
 
+def test_nested_pieces_of_one_file_are_not_a_self_intersection(tmp_path):
+    """A hollow organ's outer and inner wall in one file: two outward pieces, the inner
+    one inside the outer (winding number 2 inside it, which is no defect)."""
+    lines = []
+    shells = shells_of(tmp_path, sphere((0, 0, 0), 10.0) + sphere((1, 0, 0), 6.0), lines)
+    assert lines == [] and len(shells) == 2
+    assert sorted(s.volume for s in shells) == pytest.approx([sphere((0, 0, 0), r).volume for r in (6.0, 10.0)])
+
+
 def test_a_clean_surface_needs_no_repair(tmp_path):
     lines = []
     shells = shells_of(tmp_path, sphere((0, 0, 0), 10.0), lines)
