@@ -511,7 +511,26 @@ def _curve(gmsh, shells: list[Shell], owned: list) -> int:
         closest = igl.point_mesh_squared_distance(straight, shell.points, shell.triangles)[2]
         for node, point in zip(middle, closest):
             gmsh.model.mesh.setNode(int(node), point, [])
+        if len(shell.features):
+            _curve_features(gmsh, shell, tags, position)
     return _straighten_inverted(gmsh)
+
+
+def _curve_features(gmsh, shell: Shell, surfaces: list[int], position: np.ndarray) -> None:
+    """Midpoints of mesh edges along a feature (a patch cut, a box edge) onto the
+    feature's polyline: the closest point of the surface would leave the cut plane."""
+    import igl
+
+    curves = {abs(tag) for _, tag in gmsh.model.getBoundary([(2, t) for t in surfaces], combined=False, oriented=False)}
+    lines = [gmsh.model.mesh.getElementsByType(8, c)[1].reshape(-1, 3) for c in curves]
+    lines = np.vstack(lines).astype(np.int64) if lines else np.empty((0, 3), np.int64)
+    corners = position[lines[:, :2]].reshape(-1, 3)
+    gap = np.sqrt(igl.point_mesh_squared_distance(corners, shell.points, shell.features)[0]).reshape(-1, 2)
+    on_feature = (gap < 1e-9 * np.linalg.norm(np.ptp(shell.points, axis=0))).all(axis=1)
+    straight = position[lines[on_feature, :2]].mean(axis=1)
+    closest = igl.point_mesh_squared_distance(straight, shell.points, shell.features)[2]
+    for node, point in zip(lines[on_feature, 2], closest):
+        gmsh.model.mesh.setNode(int(node), point, [])
 
 
 def _straighten_inverted(gmsh) -> int:

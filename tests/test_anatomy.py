@@ -149,6 +149,27 @@ surface = "pair.stl"
     assert volumes["tissue"] + volumes["pair"] == pytest.approx(38 * 22 * 22, rel=1e-9)
 
 
+def test_body_surface_with_a_cap_patch(tmp_path):
+    """A spherical body (a user surface) clamped on a cap: the patch is the cap, its rim
+    on the cut plane (curved edges along the cut, not bulging across it)."""
+    spec = write(tmp_path, {"body.stl": sphere((0, 0, 0), 12.0, nsub=5), "ball.stl": sphere((0, 0, 0), 5.0)}, """
+size = 3.0
+organ_size = 2.0
+[body]
+surface = "body.stl"
+[regions.ball]
+surface = "ball.stl"
+[patches.cap]
+side = { point = [-8.0, 0.0, 0.0], normal = [-1.0, 0.0, 0.0] }
+""")
+    areas, volumes, scene = measures(build_scene_from_spec(spec, tmp_path / "out", say=lambda _: None))
+    assert set(areas) == {"outer", "cap", "ball_surface"}
+    assert areas["outer"] == pytest.approx(4 * math.pi * 144, rel=2e-3)
+    assert areas["cap"] == pytest.approx(2 * math.pi * 12 * 4, rel=2e-3)  # 2 pi R h
+    assert (facet_corners(scene, "cap")[:, :, 0] <= -8.0 + 1e-9).all()
+    assert volumes["tissue"] + volumes["ball"] == pytest.approx(4 / 3 * math.pi * 12**3, rel=2e-3)
+
+
 def test_region_inside_a_region(tmp_path):
     """A tumour inside a gland: the gland's volume is the shell between the two."""
     spec = write(tmp_path, {"gland.stl": sphere((0, 0, 0), 8.0), "tumour.stl": sphere((2, 0, 0), 3.0)}, """
