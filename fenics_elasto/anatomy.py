@@ -300,7 +300,9 @@ def _longest_edge(shell: Shell) -> float:
 def _contact(a: Shell, b: Shell, how: str) -> str:
     if a.role == "body" or b.role == "body":
         organ, body = (b, a) if a.role == "body" else (a, b)
-        return f"{organ.label} leaks out of the body: its surface and the body's ({body.label}) {how}"
+        if how == "intersect":
+            return f"{organ.label} leaks out of the body: its surface and the body's ({body.label}) intersect"
+        return f"{organ.label} and the body's surface ({body.label}) {how}"
     if a.label == b.label:
         return f"{a.label}: two of its pieces {how}"
     return f"{a.label} and {b.label} {how}"
