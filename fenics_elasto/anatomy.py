@@ -40,7 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fenics_elasto.anatomy_repair import Shell, closed_shells, cut_by_planes, quiet_vtk, sharp_edges
+from fenics_elasto.anatomy_repair import Shell, closed_shells, cut_by_planes, enclosed_volume, quiet_vtk, sharp_edges
 from fenics_elasto.errors import UserError, require
 from fenics_elasto.scene import fresh_gmsh_model
 
@@ -214,8 +214,6 @@ def _describe(pieces: list[Shell], label: str, units: str, say) -> None:
 
 
 def _outward(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    from fenics_elasto.anatomy_repair import enclosed_volume
-
     return triangles if enclosed_volume(points, triangles) > 0 else triangles[:, [0, 2, 1]]
 
 
@@ -610,7 +608,7 @@ def problem_toml(spec: dict, shells: list[Shell], msh_name: str) -> str:
     if not cavities:
         lines += ["# No cavities: nothing carries the unknown forces yet; list the facet groups that do."]
     lines += [f"fixed   = {_toml_list(fixed)}",
-              f"loaded  = {_toml_list(cavities)}      # unknown forces on the cavity walls",
+              f"loaded  = {_toml_list(cavities)}" + ("      # unknown forces on the cavity walls" if cavities else ""),
               f"matched = {_toml_list(matched)}",
               'match_nodes = "auto"']
     for cavity in cavities:
