@@ -30,6 +30,11 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--prostate-size", type=float, default=None,
                    help="phantom: element size at the prostate, relative to --size (default 0.22)")
 
+    p = sub.add_parser("scene", help="a scene (.msh + problem.toml) from organ surface files named in a spec")
+    p.add_argument("spec", type=Path, help="scene spec (TOML): body, regions, cavities, patches")
+    p.add_argument("--out", required=True, type=Path)
+    p.add_argument("--size", type=float, default=None, help="element size in the body (the spec's units)")
+
     for name, text in (("simulate", "forward solve with prescribed loads/displacements"),
                        ("estimate", "estimate materials and boundary forces from a target")):
         p = sub.add_parser(name, help=text)
@@ -81,6 +86,20 @@ def _mesh(args) -> None:
     log.info(f"wrote {path}")
 
 
+def _scene(args) -> None:
+    from fenics_elasto.anatomy import build_scene_from_spec
+
+    path, error = None, None
+    if MPI.COMM_WORLD.rank == 0:  # gmsh meshes on one rank; its verdict goes to all
+        try:
+            path = build_scene_from_spec(args.spec, args.out, args.size, say=_say)
+        except UserError as err:
+            error = str(err)
+    path, error = MPI.COMM_WORLD.bcast((path, error), root=0)
+    require(error is None, error)
+    _say(f"wrote {path}")
+
+
 def _simulate(args) -> None:
     from fenics_elasto.commands import run_simulate
 
@@ -116,7 +135,7 @@ def _render(args) -> None:
     run_render(args.result_dir, args.out)
 
 
-COMMANDS = {"mesh": _mesh, "simulate": _simulate, "estimate": _estimate, "train": _train, "render": _render}
+COMMANDS = {"mesh": _mesh, "scene": _scene, "simulate": _simulate, "estimate": _estimate, "train": _train, "render": _render}
 
 
 def main(argv=None) -> int:

@@ -1,0 +1,467 @@
+"""Scenes from surface files (`fenics-elasto scene`): groups, areas and volumes against
+the analytic shapes the surfaces sample; each repair of a defective surface; each
+refusal as one line + exit 2; the real prostate; and a scene that `simulate` runs."""
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import pyvista as pv
+import ufl
+from scipy.spatial import cKDTree
+
+import dolfinx
+from conftest import run_cli
+from fenics_elasto.anatomy import build_scene_from_spec
+from fenics_elasto.anatomy_repair import closed_shells, enclosed_volume
+from fenics_elasto.cli import main
+from fenics_elasto.scene import load_scene
+
+PROSTATE = Path(__file__).resolve().parents[1] / "fenics_elasto" / "meshes" / "prostate" / "prostate.stl"
+
+
+def sphere(center, radius, nsub=4) -> pv.PolyData:
+    """Icosphere: every vertex on the sphere (nsub 4: 5,120 triangles, area 0.1 % short)."""
+    return pv.Icosphere(radius=radius, center=center, nsub=nsub)
+
+
+def ellipsoid(center, radii, nsub=4) -> pv.PolyData:
+    surface = pv.Icosphere(radius=1.0, nsub=nsub)
+    surface.points = np.asarray(surface.points) * radii + np.asarray(center)
+    return surface
+
+
+def write(folder: Path, files: dict, spec: str) -> Path:
+    folder.mkdir(parents=True, exist_ok=True)
+    for name, surface in files.items():
+        surface.save(folder / name)
+    (folder / "spec.toml").write_text(spec)
+    return folder / "spec.toml"
+
+
+def measures(problem: Path) -> tuple[dict, dict, object]:
+    """Area of every facet group (1 ds + 1 dS) and volume of every cell group (1 dx),
+    assembled on the DOLFINx mesh the scene loader reads."""
+    scene = load_scene(problem)
+    mesh = scene.mesh
+    areas = {}
+    for name, facets in scene.facet_groups.items():
+        tags = dolfinx.mesh.meshtags(mesh, 2, np.sort(facets), np.ones(len(facets), np.int32))
+        areas[name] = sum(dolfinx.fem.assemble_scalar(dolfinx.fem.form(
+            1.0 * measure(domain=mesh, subdomain_data=tags, subdomain_id=1))) for measure in (ufl.ds, ufl.dS))
+    volumes = {m.name: dolfinx.fem.assemble_scalar(dolfinx.fem.form(
+        1.0 * ufl.dx(domain=mesh, subdomain_data=scene.cell_tags, subdomain_id=m.tag))) for m in scene.materials}
+    return areas, volumes, scene
+
+
+def facet_corners(scene, group: str) -> np.ndarray:
+    """(facets, 3, 3) the corner points of a facet group's (curved) triangles."""
+    mesh = scene.mesh
+    nodes = dolfinx.mesh.entities_to_geometry(mesh, 2, scene.facet_groups[group])
+    return mesh.geometry.x[nodes[:, :3]]
+
+
+def flat_area(corners: np.ndarray) -> float:
+    return 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1).sum()
+
+
+def expect_error(capsys, argv, *words):
+    assert main([str(a) for a in argv]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and err.startswith("error: "), err
+    for word in words:
+        assert word in err, (word, err)
+
+
+def say_into(lines: list):
+    return lambda text: lines.append(text)
+
+
+# --------------------------------------------------------------------------- analytic scenes
+
+
+@pytest.fixture(scope="module")
+def sphere_in_box(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("sphere_in_box")
+    spec = write(folder, {"ball.stl": sphere((0, 0, 0), 10.0, nsub=5)}, """
+units = "mm"
+size = 6.0
+organ_size = 2.5
+[body]
+box = { margin = 8.0 }
+[regions.ball]
+surface = "ball.stl"
+[patches.bottom]
+side = { point = [0.0, -15.0, 0.0], normal = [0.0, -1.0, 0.0] }
+""")
+    return build_scene_from_spec(spec, folder / "out", say=lambda _: None)
+
+
+def test_sphere_in_box_groups_areas_and_volumes(sphere_in_box):
+    areas, volumes, scene = measures(sphere_in_box)
+    r, half = 10.0, 18.0  # the box is the sphere's bounding box (poles are vertices) grown by the margin
+    assert set(areas) == {"outer", "ball_surface", "bottom"} and set(volumes) == {"tissue", "ball"}
+    assert areas["outer"] == pytest.approx(6 * (2 * half) ** 2, rel=1e-9)
+    assert areas["bottom"] == pytest.approx((2 * half) ** 2 + 4 * (2 * half) * 3.0, rel=1e-9)  # face + 3-wide strips
+    assert areas["ball_surface"] == pytest.approx(4 * math.pi * r**2, rel=2e-3)
+    assert volumes["ball"] == pytest.approx(4 / 3 * math.pi * r**3, rel=2e-3)
+    assert volumes["tissue"] + volumes["ball"] == pytest.approx((2 * half) ** 3, rel=1e-9)
+
+
+def test_curved_surfaces_are_much_closer_than_flat_facets(sphere_in_box):
+    areas, _, scene = measures(sphere_in_box)
+    exact = 4 * math.pi * 10.0**2
+    flat = flat_area(facet_corners(scene, "ball_surface"))
+    assert abs(flat - exact) / exact > 5e-3  # flat facets cut the sphere's curvature
+    assert abs(areas["ball_surface"] - exact) < abs(flat - exact) / 10
+
+
+def test_patch_is_the_half_space_of_facet_centroids(sphere_in_box):
+    _, _, scene = measures(sphere_in_box)
+    side = lambda group: facet_corners(scene, group).mean(axis=1) @ [0.0, -1.0, 0.0] - 15.0  # noqa: E731
+    assert (side("bottom") > 0).all()
+    outer_only = np.setdiff1d(scene.facet_groups["outer"], scene.facet_groups["bottom"])
+    nodes = dolfinx.mesh.entities_to_geometry(scene.mesh, 2, outer_only)
+    assert (scene.mesh.geometry.x[nodes[:, :3]].mean(axis=1) @ [0.0, -1.0, 0.0] - 15.0 <= 0).all()
+
+
+def test_two_spheres_in_one_file_make_one_region(tmp_path):
+    pair = sphere((-8, 0, 0), 5.0) + sphere((8, 0, 0), 5.0)
+    spec = write(tmp_path, {"pair.stl": pair}, """
+units = "cm"
+size = 5.0
+organ_size = 2.0
+[body]
+box = { margin = 6.0 }
+[regions.pair]
+surface = "pair.stl"
+""")
+    lines = []
+    problem = build_scene_from_spec(spec, tmp_path / "out", say=say_into(lines))
+    areas, volumes, _ = measures(problem)
+    assert "2 closed piece(s)" in lines[0] and lines[0].endswith("26 x 10 x 10 cm")
+    assert 'units = "cm"' in problem.read_text()
+    assert set(volumes) == {"tissue", "pair"} and set(areas) == {"outer", "pair_surface"}
+    assert areas["pair_surface"] == pytest.approx(2 * 4 * math.pi * 25, rel=3e-3)
+    assert volumes["pair"] == pytest.approx(2 * 4 / 3 * math.pi * 125, rel=3e-3)
+    assert volumes["tissue"] + volumes["pair"] == pytest.approx(38 * 22 * 22, rel=1e-9)
+
+
+def test_body_surface_with_a_cap_patch(tmp_path):
+    """A spherical body (a user surface) clamped on a cap: the patch is the cap, its rim
+    on the cut plane (curved edges along the cut, not bulging across it)."""
+    spec = write(tmp_path, {"body.stl": sphere((0, 0, 0), 12.0, nsub=5), "ball.stl": sphere((0, 0, 0), 5.0)}, """
+size = 3.0
+organ_size = 2.0
+[body]
+surface = "body.stl"
+[regions.ball]
+surface = "ball.stl"
+[patches.cap]
+side = { point = [-8.0, 0.0, 0.0], normal = [-1.0, 0.0, 0.0] }
+""")
+    areas, volumes, scene = measures(build_scene_from_spec(spec, tmp_path / "out", say=lambda _: None))
+    assert set(areas) == {"outer", "cap", "ball_surface"}
+    assert areas["outer"] == pytest.approx(4 * math.pi * 144, rel=2e-3)
+    assert areas["cap"] == pytest.approx(2 * math.pi * 12 * 4, rel=2e-3)  # 2 pi R h
+    assert (facet_corners(scene, "cap")[:, :, 0] <= -8.0 + 1e-9).all()
+    assert volumes["tissue"] + volumes["ball"] == pytest.approx(4 / 3 * math.pi * 12**3, rel=2e-3)
+
+
+def test_region_inside_a_region(tmp_path):
+    """A tumour inside a gland: the gland's volume is the shell between the two."""
+    spec = write(tmp_path, {"gland.stl": sphere((0, 0, 0), 8.0), "tumour.stl": sphere((2, 0, 0), 3.0)}, """
+size = 5.0
+organ_size = 2.0
+[body]
+box = { margin = 5.0 }
+[regions.gland]
+surface = "gland.stl"
+[regions.tumour]
+surface = "tumour.stl"
+""")
+    areas, volumes, _ = measures(build_scene_from_spec(spec, tmp_path / "out", say=lambda _: None))
+    # (a tumour of radius 3 meshed at 2: ~0.5 % short; a gland without its hole would be 6 % over)
+    assert volumes["tumour"] == pytest.approx(4 / 3 * math.pi * 27, rel=1e-2)
+    assert volumes["gland"] == pytest.approx(4 / 3 * math.pi * (512 - 27), rel=1e-2)
+    assert areas["tumour_surface"] == pytest.approx(4 * math.pi * 9, rel=1e-2)
+
+
+@pytest.mark.slow
+def test_cavity_and_region_in_an_ellipsoid_body(tmp_path):
+    spec = write(tmp_path, {"ball.stl": sphere((-9, 0, 0), 6.0, nsub=5), "hole.stl": sphere((9, 0, 0), 5.0, nsub=5)}, """
+size = 5.0
+organ_size = 2.0
+[body]
+ellipsoid = { margin = 6.0 }
+material = "fat"
+[regions.ball]
+surface = "ball.stl"
+[cavities.hole]
+surface = "hole.stl"
+""")
+    problem = build_scene_from_spec(spec, tmp_path / "out", say=lambda _: None)
+    areas, volumes, scene = measures(problem)
+    assert set(volumes) == {"fat", "ball"} and set(areas) == {"outer", "ball_surface", "hole"}
+    assert areas["ball_surface"] == pytest.approx(4 * math.pi * 36, rel=2e-3)
+    assert areas["hole"] == pytest.approx(4 * math.pi * 25, rel=2e-3)
+    assert volumes["ball"] == pytest.approx(4 / 3 * math.pi * 216, rel=2e-3)
+    # The outer boundary is an ellipsoid about the centre of the organs' box: fit its semi-axes.
+    points = facet_corners(scene, "outer").reshape(-1, 3) - [-0.5, 0.0, 0.0]
+    inverse_squares, *_ = np.linalg.lstsq(points**2, np.ones(len(points)), rcond=None)
+    a, b, c = 1 / np.sqrt(inverse_squares)
+    assert np.abs((points**2) @ inverse_squares - 1).max() < 2e-3
+    assert b == pytest.approx(c, rel=1e-3) and a > b  # shaped like the organs' box, grown
+    enclosed = 4 / 3 * math.pi * a * b * c
+    assert volumes["fat"] + volumes["ball"] == pytest.approx(enclosed - 4 / 3 * math.pi * 125, rel=2e-3)
+    # every organ point keeps the margin from the outer boundary
+    organ = np.vstack([sphere((-8.5, 0, 0), 6.0).points, sphere((9.5, 0, 0), 5.0).points])
+    assert cKDTree(points).query(organ)[0].min() > 0.95 * 6.0
+    text = problem.read_text()
+    assert 'loaded  = ["hole"]' in text and "[materials.fat]" in text and "[boundary.displacement.hole]" in text
+
+
+# --------------------------------------------------------------------------- repairs
+
+
+def shells_of(tmp_path, surface, lines, name="organ.vtk"):
+    surface.save(tmp_path / name)
+    return closed_shells(tmp_path / name, name, "region", "organ", say_into(lines))
+
+
+def test_specks_are_dropped_and_reported(tmp_path):
+    specks = [sphere((30 + 3 * k, 0, 0), 0.05, nsub=0) for k in range(3)]
+    lines = []
+    shells = shells_of(tmp_path, sphere((0, 0, 0), 10.0).merge(specks), lines)
+    assert len(shells) == 1 and len(shells[0].triangles) == 5120
+    assert any("dropped 3 stray piece(s) (20 triangles each" in line for line in lines), lines
+
+
+def test_small_hole_is_filled_and_reported(tmp_path):
+    ball = sphere((0, 0, 0), 10.0)
+    top = np.asarray(ball.cell_centers().points)[:, 2] > 9.9  # a cap of radius ~1.4
+    lines = []
+    shells = shells_of(tmp_path, ball.extract_cells(np.flatnonzero(~top)).extract_surface(algorithm=None), lines)
+    assert any("filled 1 hole(s)" in line for line in lines), lines
+    assert len(shells) == 1
+    assert shells[0].volume == pytest.approx(ball.volume, rel=1e-3)
+
+
+def test_flipped_normals_are_turned_outward_and_reported(tmp_path):
+    ball = sphere((0, 0, 0), 10.0)
+    faces = ball.regular_faces.copy()
+    lines = []
+    inward = shells_of(tmp_path, pv.PolyData.from_regular_faces(ball.points, faces[:, ::-1]), lines, "in.vtk")
+    assert any("turned the inward-facing normals of 1 component(s) outward" in line for line in lines), lines
+    assert inward[0].volume == pytest.approx(ball.volume, rel=1e-9)
+    some = np.random.default_rng(0).random(len(faces)) < 0.1
+    faces[some] = faces[some][:, ::-1]
+    lines = []
+    mixed = shells_of(tmp_path, pv.PolyData.from_regular_faces(ball.points, faces), lines, "mixed.vtk")
+    assert any(f"re-oriented {some.sum()} triangles" in line for line in lines), lines
+    assert mixed[0].volume == pytest.approx(ball.volume, rel=1e-9)
+
+
+def test_duplicated_points_and_triangles_are_merged_and_reported(tmp_path):
+    ball = sphere((0, 0, 0), 10.0)
+    faces = ball.regular_faces
+    soup = np.asarray(ball.points)[faces].reshape(-1, 3)  # every triangle with its own corners
+    triangles = np.arange(len(soup)).reshape(-1, 3)
+    triangles = np.vstack([triangles, triangles[:7]])  # and 7 triangles twice
+    lines = []
+    shells = shells_of(tmp_path, pv.PolyData.from_regular_faces(soup, triangles), lines)
+    assert any(f"merged {len(soup) - ball.n_points} duplicated points" in line for line in lines), lines
+    assert any("dropped 7 duplicated triangles" in line for line in lines), lines
+    assert len(shells[0].triangles) == len(faces)
+    assert shells[0].volume == pytest.approx(ball.volume, rel=1e-9)
+
+
+def test_nested_pieces_of_one_file_are_not_a_self_intersection(tmp_path):
+    """A hollow organ's outer and inner wall in one file: two outward pieces, the inner
+    one inside the outer (winding number 2 inside it, which is no defect)."""
+    lines = []
+    shells = shells_of(tmp_path, sphere((0, 0, 0), 10.0) + sphere((1, 0, 0), 6.0), lines)
+    assert lines == [] and len(shells) == 2
+    assert sorted(s.volume for s in shells) == pytest.approx([sphere((0, 0, 0), r).volume for r in (6.0, 10.0)])
+
+
+def test_a_clean_surface_needs_no_repair(tmp_path):
+    lines = []
+    shells = shells_of(tmp_path, sphere((0, 0, 0), 10.0), lines)
+    assert lines == [] and enclosed_volume(shells[0].points, shells[0].triangles) > 0
+
+
+# --------------------------------------------------------------------------- refusals
+
+
+BOX_BODY = """
+[body]
+box = { margin = 5.0 }
+[regions.a]
+surface = "a.stl"
+"""
+BOX_SPEC = "size = 5.0\n" + BOX_BODY
+
+
+def test_refusals_of_bad_surfaces(tmp_path, capsys):
+    ball = sphere((0, 0, 0), 10.0)
+    half = ball.extract_cells(np.flatnonzero(np.asarray(ball.cell_centers().points)[:, 2] > 0)).extract_surface(algorithm=None)
+    cases = {
+        "open": ("a.stl", half, ["a.stl", "not a closed surface", "opening of radius"]),
+        "lines": ("a.vtk", pv.Circle(radius=5.0).extract_feature_edges(), ["a.vtk", "only lines"]),
+    }
+    for case, (name, surface, words) in cases.items():
+        spec = write(tmp_path / case, {name: surface}, BOX_SPEC.replace("a.stl", name))
+        expect_error(capsys, ["scene", spec, "--out", tmp_path / case / "out"], *words)
+    spec = write(tmp_path / "empty", {}, BOX_SPEC)
+    (tmp_path / "empty" / "a.stl").write_bytes(b"")
+    expect_error(capsys, ["scene", spec, "--out", tmp_path / "out"], "a.stl", "empty")
+    (tmp_path / "empty" / "a.stl").unlink()
+    expect_error(capsys, ["scene", spec, "--out", tmp_path / "out"], "a.stl", "no such file")
+
+
+def test_refusal_of_non_manifold_and_self_intersecting_surfaces(tmp_path, capsys):
+    ball = sphere((0, 0, 0), 10.0)
+    edge = ball.regular_faces[0, :2]
+    fin = pv.PolyData.from_regular_faces(np.vstack([ball.points, [[0, 0, 30.0]]]),
+                                         np.vstack([ball.regular_faces, [[edge[0], edge[1], ball.n_points]]]))
+    spec = write(tmp_path / "fin", {"a.stl": fin}, BOX_SPEC)
+    expect_error(capsys, ["scene", spec, "--out", tmp_path / "out"], "a.stl", "non-manifold")
+    dented = ball.copy()
+    points = np.asarray(dented.points).copy()
+    points[points[:, 2] > 8.0, 2] -= 19.0  # the top cap pushed through the bottom
+    dented.points = points
+    spec = write(tmp_path / "dent", {"a.stl": dented}, BOX_SPEC)
+    expect_error(capsys, ["scene", spec, "--out", tmp_path / "out"], "a.stl", "passes through itself")
+
+
+def test_refusals_of_organs_that_do_not_nest(tmp_path, capsys):
+    two = """
+organ_size = 1.0
+[body]
+surface = "body.stl"
+[regions.a]
+surface = "a.stl"
+[{kind}.b]
+surface = "b.stl"
+"""
+    body = sphere((0, 0, 0), 20.0)
+    cases = {
+        "crossing": ({"a.stl": sphere((-3, 0, 0), 5.0), "b.stl": sphere((3, 0, 0), 5.0)}, "regions",
+                     ["regions.a (a.stl)", "regions.b (b.stl)", "intersect"]),
+        "touching": ({"a.stl": sphere((-5.03, 0, 0), 5.0), "b.stl": sphere((5.03, 0, 0), 5.0)}, "regions",
+                     ["a.stl", "b.stl", "touch"]),
+        "leaking": ({"a.stl": sphere((0, 0, 0), 5.0), "b.stl": sphere((18, 0, 0), 5.0)}, "regions",
+                    ["regions.b (b.stl) leaks out of the body", "body.stl"]),
+        "outside": ({"a.stl": sphere((0, 0, 0), 5.0), "b.stl": sphere((40, 0, 0), 5.0)}, "regions",
+                    ["regions.b (b.stl) lies outside the body (body.stl)"]),
+        "cavity_in_region": ({"a.stl": sphere((0, 0, 0), 10.0), "b.stl": sphere((0, 0, 0), 4.0)}, "cavities",
+                             ["cavities.b (b.stl) lies inside regions.a (a.stl)", "surrounded by the body"]),
+    }
+    for case, (files, kind, words) in cases.items():
+        spec = write(tmp_path / case, {"body.stl": body, **files}, two.format(kind=kind))
+        expect_error(capsys, ["scene", spec, "--out", tmp_path / case / "out"], *words)
+
+
+def test_gmsh_failure_is_one_line_naming_a_file(tmp_path):
+    """Surfaces that cross (the checks before meshing bypassed): gmsh's own error, with
+    the file behind the surface it names, as a UserError."""
+    from fenics_elasto.anatomy import box_shell, mesh_shells
+    from fenics_elasto.anatomy_repair import Shell
+    from fenics_elasto.errors import UserError
+
+    def shell(centre, role, name):
+        s = sphere(centre, 5.0, nsub=3)
+        return Shell(role, name, f"{name}.stl", np.asarray(s.points), s.regular_faces.astype(np.int64))
+
+    body = box_shell(np.array([-12.0, -10, -10]), np.array([12.0, 10, 10]), "tissue")
+    with pytest.raises(UserError, match=r"gmsh could not mesh the scene near (a|b)\.stl .*intersection"):
+        mesh_shells([body, shell((-2, 0, 0), "region", "a"), shell((2, 0, 0), "cavity", "b")], [None, 0, 0], [],
+                    4.0, 1.5, tmp_path / "x.msh")
+
+
+@pytest.mark.parametrize("text, words", [
+    ("organ_sise = 2.0", ["organ_sise", "did you mean 'organ_size'"]),
+    ("size = 'big'", ["size", "expected a number > 0", "'big'"]),
+    ("units = 'inch'", ["units", "mm, cm, m"]),
+    ("[patches.bones]\nside = { point = [0, 0], normal = [0, 1, 0] }", ["patches.bones.side.point", "3 numbers"]),
+    ("[patches.bones]\nside = { point = [0, -99, 0], normal = [0, -1, 0] }", ["patches.bones", "no part of the outer"]),
+    ("[cavities.a_surface]\nsurface = 'a.stl'", ["a_surface", "clashes"]),
+    ("organ_size = 9.0\nsize = 5.0", ["organ_size 9 is larger than size 5"]),
+    ("[regions.b]\nsurfce = 'b.stl'", ["regions.b", "did you mean 'surface'"]),
+])
+def test_refusals_of_bad_spec_keys(tmp_path, capsys, text, words):
+    spec = write(tmp_path, {"a.stl": sphere((0, 0, 0), 5.0)}, BOX_SPEC + text + "\n" if text.startswith("[")
+                 else text + "\n" + BOX_BODY)
+    expect_error(capsys, ["scene", spec, "--out", tmp_path / "out"], *words)
+
+
+# --------------------------------------------------------------------------- real data and the CLI
+
+
+def pelvis(folder: Path, size: float) -> Path:
+    """The real prostate with a bladder above and a rectum behind it (ellipsoids)."""
+    return write(folder, {"bladder.stl": ellipsoid((0.7, -2.0, 64.3), (25, 20, 15)),
+                          "rectum.stl": ellipsoid((0.7, 29.2, 25.0), (10, 10, 30))}, f"""
+units = "mm"
+size = {size}
+[body]
+box = {{ margin = 15.0 }}
+[regions.prostate]
+surface = "{PROSTATE}"
+[cavities.bladder]
+surface = "bladder.stl"
+[cavities.rectum]
+surface = "rectum.stl"
+[patches.bones]
+side = {{ point = [0.0, -25.0, 0.0], normal = [0.0, -1.0, 0.0] }}
+""")
+
+
+@pytest.mark.slow
+def test_real_prostate_scene(tmp_path, capsys):
+    spec = pelvis(tmp_path, 14.0)
+    assert main(["scene", str(spec), "--out", str(tmp_path / "out")]) == 0
+    out = capsys.readouterr().out
+    assert "regions.prostate" in out and "dropped 4 stray piece(s) (8 triangles each" in out
+    areas, volumes, _ = measures(tmp_path / "out" / "problem.toml")
+    assert set(areas) == {"outer", "bones", "bladder", "rectum", "prostate_surface"}
+    # the organ as segmented: the largest connected piece of the file
+    organ = pv.read(PROSTATE).connectivity("largest").extract_surface(algorithm=None)
+    assert volumes["prostate"] == pytest.approx(organ.volume, rel=5e-3)
+    assert areas["bladder"] == pytest.approx(ellipsoid((0, 0, 0), (25, 20, 15)).area, rel=3e-3)
+
+
+@pytest.mark.slow
+def test_scene_from_surfaces_runs_simulate(tmp_path):
+    spec = write(tmp_path, {"ball.stl": sphere((-7, 0, 0), 5.0), "hole.stl": sphere((7, 0, 0), 4.0)}, """
+organ_size = 2.5
+[body]
+box = { margin = 8.0 }
+[regions.ball]
+surface = "ball.stl"
+[cavities.hole]
+surface = "hole.stl"
+""")
+    proc = run_cli("scene", spec, "--out", tmp_path / "scene", "--size", 6)
+    assert proc.returncode == 0 and proc.stderr == "", proc.stderr
+    assert "element size 6 mm in the body, 2.5 mm at the organs" in proc.stdout
+    proc = run_cli("simulate", tmp_path / "scene" / "problem.toml", "--out", tmp_path / "result")
+    assert proc.returncode == 0, proc.stderr
+    result = json.loads((tmp_path / "result" / "result.json").read_text())
+    # the hole's wall is inflated by 5 % of its radius; the clamped box holds the rest
+    assert result["max_displacement"] == pytest.approx(0.05 * 4.0, rel=2e-2)
+    assert set(result["materials"]) == {"ball", "tissue"}
+
+
+@pytest.mark.slow
+def test_scene_under_mpi(tmp_path):
+    spec = write(tmp_path, {"a.stl": sphere((0, 0, 0), 5.0)}, BOX_SPEC)
+    proc = run_cli("scene", spec, "--out", tmp_path / "out", mpi=2)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.count("wrote ") == 1
+    bad = write(tmp_path / "bad", {"a.stl": sphere((0, 0, 0), 5.0)}, BOX_SPEC.replace("size", "sise"))
+    proc = run_cli("scene", bad, "--out", tmp_path / "out2", mpi=2)
+    assert proc.returncode == 2 and proc.stderr.strip().count("\n") == 0 and "sise" in proc.stderr
