@@ -9,7 +9,7 @@ from pathlib import Path
 
 from mpi4py import MPI
 
-from fenics_elasto.errors import UserError, require
+from fenics_elasto.errors import UserError, on_root, require
 from fenics_elasto.interrupts import handle_signals
 from fenics_elasto.logs import log, show
 
@@ -72,32 +72,20 @@ def _parser() -> argparse.ArgumentParser:
 def _mesh(args) -> None:
     from fenics_elasto.meshing import atlas_surfaces, build_scene
 
-    path, error = None, None
-    if MPI.COMM_WORLD.rank == 0:  # gmsh meshes on one rank; its verdict goes to all
-        try:
-            require(args.atlas is None or args.name == "prostate-phantom", "--atlas: only prostate-phantom takes an atlas")
-            atlas = atlas_surfaces(args.atlas) if args.atlas else None
-            path = build_scene(args.name, args.out, args.size, args.seed, atlas,
-                               organ_size=args.organ_size, prostate_size=args.prostate_size)
-        except UserError as err:
-            error = str(err)
-    path, error = MPI.COMM_WORLD.bcast((path, error), root=0)
-    require(error is None, error)
-    log.info(f"wrote {path}")
+    def build():  # gmsh meshes on one rank; its verdict goes to all
+        require(args.atlas is None or args.name == "prostate-phantom", "--atlas: only prostate-phantom takes an atlas")
+        atlas = atlas_surfaces(args.atlas) if args.atlas else None
+        return build_scene(args.name, args.out, args.size, args.seed, atlas,
+                           organ_size=args.organ_size, prostate_size=args.prostate_size)
+
+    log.info(f"wrote {on_root(MPI.COMM_WORLD, build)}")
 
 
 def _scene(args) -> None:
     from fenics_elasto.anatomy import build_scene_from_spec
 
-    path, error = None, None
-    if MPI.COMM_WORLD.rank == 0:  # gmsh meshes on one rank; its verdict goes to all
-        try:
-            path = build_scene_from_spec(args.spec, args.out, args.size, say=_say)
-        except UserError as err:
-            error = str(err)
-    path, error = MPI.COMM_WORLD.bcast((path, error), root=0)
-    require(error is None, error)
-    _say(f"wrote {path}")
+    path = on_root(MPI.COMM_WORLD, lambda: build_scene_from_spec(args.spec, args.out, args.size, say=log.info))
+    log.info(f"wrote {path}")
 
 
 def _simulate(args) -> None:

@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 from mpi4py import MPI
 
-from fenics_elasto.errors import UserError, require
+from fenics_elasto.errors import UserError, on_root, require
 from fenics_elasto.interrupts import deferred_signals
 
 MARKER = "result.json"
@@ -64,7 +64,7 @@ def prepare_folder(path, comm=None, say=None) -> OutputFolder:
     comm = comm or MPI.COMM_WORLD
     path = Path(path)
     with deferred_signals(comm):  # the lock is taken whole and recorded for release
-        created, note = _on_root(comm, lambda: _check_and_lock(path))
+        created, note = on_root(comm, lambda: _check_and_lock(path))
         folder = OutputFolder(path, comm, comm.bcast(os.getpid(), root=0), created)
         atexit.register(folder.release)
     if note and comm.rank == 0:
@@ -91,21 +91,8 @@ def prepare_file(path, suffix: str, comm=None) -> OutputFile:
         require(not os.path.lexists(path) or path.is_file(), f"{path}: exists and is not a regular file")
         _check_directory(path.parent)
 
-    _on_root(comm, check)
+    on_root(comm, check)
     return OutputFile(path, comm, comm.bcast(os.getpid(), root=0))
-
-
-def _on_root(comm, work):
-    """``work()`` on rank 0; its value, or its UserError, on every rank."""
-    value, error = None, None
-    if comm.rank == 0:
-        try:
-            value = work()
-        except UserError as err:
-            error = str(err)
-    value, error = comm.bcast((value, error), root=0)
-    require(error is None, error)
-    return value
 
 
 def _check_and_lock(path: Path):

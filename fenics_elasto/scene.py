@@ -19,7 +19,7 @@ import dolfinx.io.gmsh
 from dolfinx.io.utils import distribute_entity_data
 
 from fenics_elasto.config import PROBLEM, apply_overrides, check_gdim, read_toml, validate_problem
-from fenics_elasto.errors import UserError, require
+from fenics_elasto.errors import UserError, on_root, require
 from fenics_elasto.logs import log
 
 ELASTIC_KEYS = ("E", "nu")
@@ -145,20 +145,6 @@ class Parameters:
 # --------------------------------------------------------------------------- mesh
 
 
-def _on_root(comm, work):
-    """Run ``work()`` on rank 0 and share its result, or its UserError, with every rank."""
-    result, error = None, None
-    if comm.rank == 0:
-        try:
-            result = work()
-        except UserError as err:
-            error = str(err)
-    error = comm.bcast(error, root=0)
-    if error is not None:
-        raise UserError(error)
-    return result
-
-
 def fresh_gmsh_model(name: str):
     """An empty gmsh model with default options (options are global: they would leak
     from one model to the next); gmsh stays quiet."""
@@ -199,6 +185,8 @@ def read_msh(path: Path, comm=MPI.COMM_WORLD):
     """
     import gmsh
 
+    facet_rows = {}  # rank 0: every facet group's facets as node rows
+
     def open_model():
         require(path.is_file(), f"{path}: no such mesh file")
         fresh_gmsh_model(path.stem)
@@ -216,11 +204,11 @@ def read_msh(path: Path, comm=MPI.COMM_WORLD):
         require(tdim == 3 or np.allclose(coords[:, 2], 0), f"{path}: a 2D mesh must lie in the z = 0 plane")
         cell_groups = [t for d, t in groups if d == tdim]
         require(cell_groups, f"{path}: no cell (region) physical groups")
-        return tdim, gmsh_facet_groups(gmsh, tdim)
+        facet_rows.update(gmsh_facet_groups(gmsh, tdim))
+        return tdim, sorted(facet_rows)
 
     try:
-        tdim, facet_rows = _on_root(comm, open_model) or (None, None)
-        tdim = comm.bcast(tdim, root=0)
+        tdim, names = on_root(comm, open_model)
         try:  # model_to_mesh shares its own errors across ranks
             data = dolfinx.io.gmsh.model_to_mesh(gmsh.model if comm.rank == 0 else None, comm, 0, gdim=tdim)
         except RuntimeError as err:
@@ -230,7 +218,6 @@ def read_msh(path: Path, comm=MPI.COMM_WORLD):
             gmsh.model.remove()
 
     mesh = data.mesh
-    names = comm.bcast(sorted(facet_rows) if comm.rank == 0 else None, root=0)
     fdim = tdim - 1
     mesh.topology.create_connectivity(fdim, tdim)
     facet_groups = {}
