@@ -32,7 +32,7 @@ from pathlib import Path
 from fenics_elasto.errors import UserError
 
 COMMANDS = ("simulate", "estimate", "train")
-SIMULATE_ONLY = ("displacement", "load")  # [boundary] tables only `simulate` uses
+SIMULATE_ONLY = ("displacement", "load", "pressure")  # [boundary] tables only `simulate` uses
 REQUIRED = object()  # a Key default: the key must be given
 
 # --------------------------------------------------------------------------- messages
@@ -452,8 +452,13 @@ MATERIAL = Table({
     "nu": Key(Elastic(Number(gt=-1, lt=0.5, noun="a Poisson's ratio"), _default_nu_bounds), REQUIRED),
 })
 
-DISPLACEMENT = Table({  # u(x) = value + (gradient + scale I)(x - center); scene.py fills zeros
+RIPPLE = Table({  # a smooth random displacement field (fields.py): amplitude x a unit-variance field
+    "amplitude": Key(Number(ge=0), REQUIRED), "length": Key(Number(gt=0), REQUIRED), "seed": Key(Integer(ge=0), 0),
+})
+
+DISPLACEMENT = Table({  # u(x) = value + (gradient + scale I)(x - center) [+ ripple]; scene.py fills zeros
     "value": Key(Vector()), "scale": Key(Number(), 0.0), "gradient": Key(Matrix()), "center": Key(Vector()),
+    "ripple": Key(RIPPLE),
 })
 
 BOUNDARY = Table({
@@ -463,6 +468,7 @@ BOUNDARY = Table({
     "match_nodes": Key(Choice("auto", "all", "vertices"), "auto"),
     "displacement": Key(Named(DISPLACEMENT, "GROUP = {value, scale, gradient, center}"), {}),
     "load": Key(Named(Vector(), "GROUP = total force vector"), {}),
+    "pressure": Key(Named(Number(), "GROUP = pressure (pushes the wall into the body)"), {}),
 }, after=_check_boundary)
 
 TARGET = Table({
@@ -517,8 +523,8 @@ def _command_checks(config: dict, command: str, where: Where) -> list[str]:
     """What ``command`` needs and ignores; the warnings for what it ignores."""
     boundary, at = config["boundary"], where.at("boundary")
     if command == "simulate":
-        if not (boundary["load"] or boundary["displacement"]):
-            where.fail("nothing to simulate: add [boundary.load] or [boundary.displacement]")
+        if not (boundary["load"] or boundary["displacement"] or boundary["pressure"]):
+            where.fail("nothing to simulate: add [boundary.load], [boundary.pressure] or [boundary.displacement]")
         if not (boundary["fixed"] or boundary["displacement"]):
             at.at("fixed").fail("clamp at least one group (fixed or [boundary.displacement]), got []")
         return []

@@ -295,21 +295,23 @@ class ElasticModel:
         M.assemble()
         return M
 
-    def traction_vector(self, tractions: dict) -> PETSc.Vec:
-        """Load vector of uniform tractions {group: traction vector} on exterior facet groups."""
+    def boundary_load(self, tractions: dict, pressures: dict | None = None) -> PETSc.Vec:
+        """Load vector of uniform tractions {group: vector} and pressures {group: p} on
+        exterior facet groups; a pressure p pushes the wall into the body, t = -p n."""
         mesh = self.scene.mesh
         fdim = mesh.topology.dim - 1
-        facets, values = [], []
-        for i, group in enumerate(tractions):
-            facets.append(self.scene.facet_groups[group])
-            values.append(np.full(len(facets[-1]), i + 1, np.int32))
+        pressures = pressures or {}
+        groups = list(tractions) + list(pressures)
+        facets = [self.scene.facet_groups[g] for g in groups]
+        values = [np.full(len(f), i + 1, np.int32) for i, f in enumerate(facets)]
         facets, values = np.concatenate(facets), np.concatenate(values)
-        order = np.argsort(facets)
+        order = np.argsort(facets, kind="stable")
         tags = dolfinx.mesh.meshtags(mesh, fdim, facets[order], values[order])
         ds = ufl.Measure("ds", domain=mesh, subdomain_data=tags)
-        v = ufl.TestFunction(self.V)
-        terms = [ufl.inner(fem.Constant(mesh, np.asarray(t, float)), v) * ds(i + 1) for i, t in enumerate(tractions.values())]
-        return self.assemble_load(sum(terms))
+        v, n = ufl.TestFunction(self.V), ufl.FacetNormal(mesh)
+        loads = [fem.Constant(mesh, np.asarray(t, float)) for t in tractions.values()]
+        loads += [-fem.Constant(mesh, float(p)) * n for p in pressures.values()]
+        return self.assemble_load(sum(ufl.inner(t, v) * ds(i + 1) for i, t in enumerate(loads)))
 
     def assemble_load(self, linear_form) -> PETSc.Vec:
         """Load vector of a UFL linear form in V (ghost contributions summed)."""

@@ -58,6 +58,7 @@ class Scene:
     matched: list[str] = field(default_factory=list)
     displacement: dict[str, dict] = field(default_factory=dict)  # prescribed, per group
     load: dict[str, np.ndarray] = field(default_factory=dict)  # total force, per group
+    pressure: dict[str, float] = field(default_factory=dict)  # pressure pushing the wall in, per group
     match_nodes: str = "auto"  # "auto" | "all" | "vertices" (observation.matched_vertices_only)
 
     @property
@@ -282,7 +283,7 @@ def _check_groups(path: Path, config: dict, cell_groups: dict, facet_groups: dic
         require(name in config["materials"], f"{path}: cell group {name!r} has no [materials.{name}] table")
     boundary = config["boundary"]
     named = [(k, g) for k in ("fixed", "loaded", "matched") for g in boundary[k]]
-    named += [(k, g) for k in ("displacement", "load") for g in boundary[k]]
+    named += [(k, g) for k in ("displacement", "load", "pressure") for g in boundary[k]]
     for key, g in named:
         require(g in facet_groups, f"{path}: boundary.{key}: unknown facet group {g!r} (have {sorted(facet_groups)})")
         require(_global_count(comm, facet_groups[g], mesh) > 0, f"{path}: boundary.{key}: group {g!r} has no facets")
@@ -298,7 +299,8 @@ def _displacement(spec: dict, gdim: int) -> dict:
     gradient = np.array(spec["gradient"]) if spec["gradient"] is not None else np.zeros((gdim, gdim))
     return {"value": np.array(spec["value"]) if spec["value"] is not None else zero,
             "gradient": gradient + spec["scale"] * np.eye(gdim),
-            "center": np.array(spec["center"]) if spec["center"] is not None else zero}
+            "center": np.array(spec["center"]) if spec["center"] is not None else zero,
+            "ripple": spec["ripple"]}
 
 
 def _configure(path: Path, raw: dict, config: dict, mesh, cell_tags, cell_groups: dict, facet_groups: dict) -> Scene:
@@ -314,5 +316,6 @@ def _configure(path: Path, raw: dict, config: dict, mesh, cell_tags, cell_groups
         fixed=boundary["fixed"], loaded=boundary["loaded"], matched=boundary["matched"],
         displacement={g: _displacement(spec, gdim) for g, spec in boundary["displacement"].items()},
         load={g: np.array(v) for g, v in boundary["load"].items()},
+        pressure=dict(boundary["pressure"]),
         match_nodes=boundary["match_nodes"],
     )

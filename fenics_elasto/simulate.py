@@ -1,8 +1,11 @@
 """Forward simulation: prescribed loads and displacements -> displacement field.
 
-Used for synthetic targets: ``[boundary.displacement]`` groups are clamped to the
-given affine displacement, ``[boundary.load]`` groups carry a total force spread as a
-uniform traction, ``fixed`` groups are clamped at zero.
+Used for synthetic targets: ``[boundary.displacement]`` groups are clamped to the given
+displacement -- affine, u = value + G (x - center), plus an optional smooth random
+``ripple`` (fields.py: one seed is one field of space, the same on any mesh) --
+``[boundary.load]`` groups carry a total force spread as a uniform traction,
+``[boundary.pressure]`` groups a pressure that pushes the wall into the body (an organ
+filling: a bulge, not an affine motion), and ``fixed`` groups are clamped at zero.
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ from dolfinx import fem
 
 from fenics_elasto.elasticity import ElasticModel
 from fenics_elasto.errors import require
+from fenics_elasto.fields import SmoothFields
 from fenics_elasto.io import write_landmarks
 from fenics_elasto.observation import probe
 from fenics_elasto.scene import Scene
@@ -36,26 +40,32 @@ def material_values(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
 
 
 def prescribed_function(model: ElasticModel, displacement: dict) -> fem.Function:
-    """u(x) = value + G (x - center) on the nodes of each prescribed group."""
+    """u(x) = value + G (x - center) [+ ripple(x)] on the nodes of each prescribed group."""
     g = model.function("prescribed")
     values = g.x.array.reshape(-1, model.bs)
     for group, spec in displacement.items():
         blocks = model.boundary_blocks([group])
-        values[blocks] = spec["value"] + (model.dof_coords[blocks] - spec["center"]) @ spec["gradient"].T
+        x = model.dof_coords[blocks]
+        values[blocks] = spec["value"] + (x - spec["center"]) @ spec["gradient"].T
+        if spec.get("ripple"):
+            ripple = spec["ripple"]
+            rng = np.random.default_rng(ripple["seed"])
+            values[blocks] += ripple["amplitude"] * SmoothFields(1, model.gdim, model.gdim, ripple["length"], rng)(x)[0]
     return g
 
 
 def simulate(scene: Scene, model: ElasticModel | None = None) -> Simulation:
     start = time.perf_counter()
     model = model or ElasticModel(scene)
-    require(scene.load or scene.displacement, f"{scene.path}: nothing to simulate: add [boundary.load] or [boundary.displacement]")
+    require(scene.load or scene.displacement or scene.pressure,
+            f"{scene.path}: nothing to simulate: add [boundary.load], [boundary.pressure] or [boundary.displacement]")
     require(scene.fixed or scene.displacement, f"{scene.path}: boundary.fixed is empty: clamp at least one group (rigid motions)")
     E, nu = material_values(scene)
     clamped = model.clamped_dofs(scene.fixed + list(scene.displacement))
     rhs = None
-    if scene.load:
+    if scene.load or scene.pressure:
         tractions = {g: total / model.group_measure(g) for g, total in scene.load.items()}
-        rhs = model.traction_vector(tractions)
+        rhs = model.boundary_load(tractions, scene.pressure)
     prescribed = prescribed_function(model, scene.displacement) if scene.displacement else None
     u = model.solve(model.coefficients(E, nu), clamped, rhs, prescribed)
     magnitude = np.linalg.norm(u.x.array.reshape(-1, model.bs)[: model.n_owned_blocks], axis=1)

@@ -37,9 +37,9 @@ import dolfinx.fem.petsc
 from dolfinx import fem
 
 from fenics_elasto.errors import require
+from fenics_elasto.fields import SmoothFields
 from fenics_elasto.logs import log
 
-FEATURES = 64  # random Fourier features per Gaussian-process sample
 
 
 @dataclass
@@ -58,14 +58,8 @@ class Generator:
 
 
 def smooth_fields(points: np.ndarray, count: int, length: float, rng, components: int = 1) -> np.ndarray:
-    """(count, n, components) zero-mean Gaussian-process samples of unit variance at the
-    points, squared-exponential kernel exp(-|x - y|^2 / (2 length^2))."""
-    dim = points.shape[1]
-    omega = rng.standard_normal((count, components, FEATURES, dim)) / length
-    phase = rng.uniform(0.0, 2 * np.pi, (count, components, FEATURES))
-    weight = rng.standard_normal((count, components, FEATURES))
-    waves = np.cos(np.einsum("ckfd,nd->ckfn", omega, points) + phase[..., None])
-    return np.sqrt(2.0 / FEATURES) * np.einsum("ckf,ckfn->cnk", weight, waves)
+    """(count, n, components) Gaussian-process samples of length ``length`` at the points."""
+    return SmoothFields(count, components, points.shape[1], length, rng)(points)
 
 
 class WallLoads:

@@ -249,7 +249,7 @@ def test_defaults_filled():
         "materials": {"a": {"E": {"value": 1.0, "estimate": False, "bounds": None},
                             "nu": {"value": 0.3, "estimate": False, "bounds": None}}},
         "boundary": {"fixed": ["f"], "loaded": [], "matched": [], "match_nodes": "auto",
-                     "displacement": {}, "load": {"l": [0.0, 1.0]}},
+                     "displacement": {}, "load": {"l": [0.0, 1.0]}, "pressure": {}},
         "target": None,
         "optimizer": {"inner": "auto", "inner_maxiter": 400, "outer_maxiter": 40, "outer_xtol": 1e-3, "scan": 5,
                       "inner_tol": 1e-6, "full_gn_limit": 1500, "anchor": 1e-4, "surrogate": True,
@@ -302,7 +302,8 @@ def test_override_can_add_a_named_table():
     config, _ = problem(overrides=["materials.inclusion={E = 30, nu = 0.3}", "boundary.displacement.side.scale=0.1"],
                         command="simulate")
     assert config["materials"]["inclusion"]["E"]["value"] == 30.0
-    assert config["boundary"]["displacement"]["side"] == {"value": None, "scale": 0.1, "gradient": None, "center": None}
+    assert config["boundary"]["displacement"]["side"] == {"value": None, "scale": 0.1, "gradient": None, "center": None,
+                                                          "ripple": None}
 
 
 def test_parse_override():
