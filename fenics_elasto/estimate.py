@@ -33,6 +33,7 @@ from fenics_elasto.interrupts import Interrupted
 from fenics_elasto.matching import match_surface
 from fenics_elasto.misfit import SurfaceTerm
 from fenics_elasto.objective import Evaluation, InverseProblem
+from fenics_elasto.posterior import Posterior, laplace
 from fenics_elasto.surrogate import MaterialSurrogate
 
 
@@ -156,6 +157,7 @@ class Estimator:
         self.profile = Profile(problem, self._inner(), basis, surrogate, same_within=1e-3 * options.outer_xtol)
         self.surrogate = SurrogateProfile(self.profile) if surrogate is not None else None
         self.outer_iterations = 0
+        self.warnings: list[str] = []
 
     def _choose_inner(self) -> str:
         inner = self.options.inner
@@ -215,11 +217,37 @@ class Estimator:
         log.info(f"scan of {len(points)} material values (start: surface matching; inner: {self.inner_name})")
         for theta in points:
             self.profile.solve(theta, "scan", self._start_for(theta))
+        self.check_identifiable()
         if self.surrogate is None:
             self.outer_solved()
         else:
             self.outer_on_surrogate()
         self.polish()
+
+    def posterior(self, result: InnerResult | None = None) -> Posterior | None:
+        """The Laplace posterior at a solve (default: the best), where the inner solver
+        gave the controls' response (Gauss-Newton)."""
+        result = result or self.profile.best()
+        lin = self.profile.linearisation(result)
+        if lin is None:
+            return None
+        s = next(s for s, r, _ in self.profile.solved if r is result)
+        noise = (self.problem.scene.config["target"] or {}).get("noise")
+        return laplace(lin, self.params.labels, s, self.params.is_E, noise)
+
+    def check_identifiable(self) -> None:
+        """After the scan: a constant whose 95 % interval (at the best scan value) is wider
+        than its bounds is not determined by the data -- end now, not after the whole run."""
+        post = self.posterior()
+        undetermined = [] if post is None else post.undetermined(self.params.s_bounds())
+        if not undetermined:
+            return
+        message = (f"{self.problem.scene.path}: the data do not determine {', '.join(undetermined)}: its 95 % "
+                   f"interval at the best scan value is wider than its bounds; fix it, or add data that see it "
+                   f"(landmarks inside the body, more matched surfaces), or set optimizer.allow_undetermined = true")
+        if not self.options.allow_undetermined:
+            raise UserError(message)
+        self.warnings.append("undetermined (allow_undetermined = true): " + message.split(": ", 1)[1].split("; fix")[0])
 
     def _start_for(self, theta):
         return None if self.inner_name == "gauss-newton" else self.initial_controls(theta)
@@ -324,11 +352,25 @@ def estimate(problem: InverseProblem, options: Options | None = None, basis: np.
         interrupted = True
         log.info("interrupted: writing the best result so far")
     theta, best, forces = estimator.final()
-    warnings += _warnings(estimator, theta, interrupted)
+    warnings += estimator.warnings + _warnings(estimator, theta, interrupted)
     for text in warnings:
         log.warning(text)
     record = _record(estimator, theta, best, phi_undeformed, warnings, interrupted, start)
+    post = estimator.posterior(best)
+    record["uncertainty"] = post.record() if post is not None else {
+        "note": f"not computed: the {estimator.inner_name} inner solver gives no response of the controls "
+                "(use reduced bases, or inner = \"gauss-newton\")"}
+    if post is not None:
+        for line in describe_uncertainty(post, theta):
+            log.info(line)
+    record["wall_time_s"] = round(time.perf_counter() - start, 3)
     return EstimateResult(theta, list(problem.params.labels), best.evaluation.u, forces, best.evaluation, record)
+
+
+def describe_uncertainty(post: Posterior, theta) -> list[str]:
+    """``prostate.E = 48.6 ± 1.9 (95 %: 45.0-52.4)`` per estimated constant."""
+    return [f"{label} = {value:.4g} ± {sd:.2g} (95 %: {lo:.4g}-{hi:.4g})"
+            for label, value, sd, (lo, hi) in zip(post.labels, theta, post.std(), post.interval())]
 
 
 def _warnings(estimator: Estimator, theta, interrupted: bool) -> list[str]:

@@ -15,10 +15,16 @@ For a clean function of theta the Gauss-Newton fit always starts from the same
 surface-matched controls q0 (no path dependence through warm starts), runs to a
 tight tolerance, and the prior it adds is in the value as in the gradient. By the
 envelope theorem dPhi*/dtheta is the partial derivative at the inner optimum.
+
+``linearise`` gives what the Gauss-Newton Hessian of Phi* needs (posterior.py): the
+residual's Jacobians in the controls and in s, weighted by the exact closest-feature
+curvature, at an inner optimum.
 """
 
 from __future__ import annotations
 
+
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -26,6 +32,30 @@ from fenics_elasto.logs import log
 from fenics_elasto.inner import GaussNewton, InnerResult
 from fenics_elasto.interrupts import check_interrupt
 
+
+
+@dataclass
+class Linearisation:
+    """The weighted residual e = sqrt(w) C r at an inner optimum and its Jacobians:
+    the Gauss-Newton Hessian of Phi in (q, s) is [A_q A_s]^T [A_q A_s] + diag(prior, 0)."""
+
+    residual: np.ndarray  # (m,)
+    A_q: np.ndarray  # (m, p) in the controls
+    A_s: np.ndarray  # (m, n_theta) in s = (log E, nu)
+    prior: float  # alpha: the prior's curvature on every control
+    informative: int  # residual components the target constrains (1 per surface point on a face, ...)
+
+
+def linearise(problem, theta, result: InnerResult, J: np.ndarray, dy_dtheta: np.ndarray, alpha: float) -> Linearisation:
+    """The Linearisation at theta from the controls' response J (n, gdim, p) and the
+    observed positions' derivative in theta at fixed controls (n, gdim, n_theta)."""
+    rows = problem.misfit.gauss_newton_rows(result.evaluation.y)  # (n, gdim, gdim): sqrt(w) C
+    weighted = np.einsum("lkd,ld->lk", rows, result.evaluation.residual).ravel()
+    A_q = np.einsum("lkd,ldr->lkr", rows, J).reshape(len(weighted), -1)
+    A_theta = np.einsum("lkd,ldr->lkr", rows, dy_dtheta).reshape(len(weighted), -1)
+    A_s = A_theta * problem.params.dtheta_ds(theta)
+    informative = int(np.sum(np.linalg.norm(rows, axis=2) > 0))
+    return Linearisation(weighted, A_q, A_s, alpha, informative)
 
 
 class Profile:
@@ -39,6 +69,7 @@ class Profile:
         self.surrogate = surrogate  # fed with the mode fields of every solve
         self.same_within = same_within
         self.solved: list[tuple[np.ndarray, InnerResult, str]] = []  # (s, result, stage)
+        self.linearisations: dict[int, Linearisation] = {}  # id(result) -> at that solve (Gauss-Newton)
         self.inner_iterations = 0
         self.unconverged = 0
 
@@ -71,6 +102,10 @@ class Profile:
         self.inner_iterations += result.iterations
         self.unconverged += not result.converged
         self.solved.append((s, result, stage))
+        if result.response is not None:  # n_theta back-solves on the factorization at hand
+            dy = self.problem.observation.rows(self.problem.forward.field_derivative(theta, result.evaluation.u))
+            self.linearisations[id(result)] = linearise(self.problem, theta, result, result.response, dy, self.inner.alpha)
+            result.response = None  # kept in the linearisation only
         log.info(f"  {stage:5s} {self.params.describe(theta)}  Phi* = {result.value:.6e}  "
                  f"({result.iterations} inner iterations{'' if result.converged else ', NOT converged'})")
         return result
@@ -84,6 +119,9 @@ class Profile:
 
     def best(self) -> InnerResult:
         return min((result for _, result, _ in self.solved), key=lambda r: r.value)
+
+    def linearisation(self, result: InnerResult) -> Linearisation | None:
+        return self.linearisations.get(id(result))
 
     def best_theta(self) -> np.ndarray:
         s, _, _ = min(self.solved, key=lambda item: item[1].value)
