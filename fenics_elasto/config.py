@@ -660,11 +660,18 @@ def parse_override(text: str) -> tuple[list[str], object]:
 
 
 def apply_overrides(config: dict, overrides, schema: Table = PROBLEM, source: str = "") -> dict:
-    """Set each ``KEY=VALUE`` in the raw ``config`` (in place), the key path checked
-    against ``schema``; returns {key path: override text} for ``validate_*``."""
+    """Set each override in the raw ``config`` (in place), the key path checked against
+    ``schema``; returns {key path: override text} for ``validate_*``.
+
+    An override is ``"KEY=VALUE"`` text (``--set``), or from Python a (dotted key, value)
+    pair -- ``overrides`` may be a dict of them: ``{"materials.prostate.E": 50.0}``.
+    """
     overridden = {}
-    for text in overrides:
-        keys, value = parse_override(text)
+    for item in (overrides.items() if isinstance(overrides, dict) else overrides):
+        if isinstance(item, str):
+            text, (keys, value) = item, parse_override(item)
+        else:
+            text, keys, value = f"{item[0]}={item[1]!r}", item[0].split("."), item[1]
         _set(config, keys, value, schema, Where(f"{source} (--set {text!r})" if source else f"--set {text!r}"))
         overridden[tuple(keys)] = text
     return overridden

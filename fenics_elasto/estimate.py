@@ -143,6 +143,22 @@ def _nodes_in(problem, nodes, other) -> np.ndarray:
 # --------------------------------------------------------------------------- the estimate
 
 
+def surface_matched_start(problem: InverseProblem) -> np.ndarray:
+    """The loaded nodes' displacement that surface matching finds (flat): matched nodes
+    moved onto their target surfaces (landmarks only: each takes its nearest landmark's
+    displacement); loaded nodes that are not matched stay put."""
+    term = problem.misfit.terms[0]
+    nodes = problem.matched_coords
+    if isinstance(term, SurfaceTerm):
+        u = match_surface(nodes, problem.node_groups(), term)
+    else:
+        rows = problem.misfit.landmark_rows()
+        moved = problem.misfit.terms[-1].points - problem.observation.points[rows]
+        u = moved[cKDTree(problem.observation.points[rows]).query(nodes)[1]]
+    return problem.forward.on_loaded(problem.observation.node_field(u))
+
+
+
 class Estimator:
     """The nested optimisation of one InverseProblem, optionally in a reduced basis W."""
 
@@ -152,7 +168,7 @@ class Estimator:
         self.options = options
         self.basis = basis  # W (force_dofs x r) or None: the full space
         self.inner_name = self._choose_inner()
-        self.d0 = self.start_displacement()
+        self.d0 = surface_matched_start(problem)
         surrogate = MaterialSurrogate(problem, basis) if basis is not None and options.surrogate else None
         self.profile = Profile(problem, self._inner(), basis, surrogate, same_within=1e-3 * options.outer_xtol)
         self.surrogate = SurrogateProfile(self.profile) if surrogate is not None else None
@@ -179,21 +195,6 @@ class Estimator:
         return inner
 
     # --- start
-
-    def start_displacement(self) -> np.ndarray:
-        """The loaded nodes' displacement that surface matching finds (flat): matched nodes
-        moved onto their target surfaces (landmarks only: each takes its nearest
-        landmark's displacement); loaded nodes that are not matched stay put."""
-        p = self.problem
-        term = p.misfit.terms[0]
-        nodes = p.matched_coords
-        if isinstance(term, SurfaceTerm):
-            u = match_surface(nodes, p.node_groups(), term)
-        else:
-            rows = p.misfit.landmark_rows()
-            moved = p.misfit.terms[-1].points - p.observation.points[rows]
-            u = moved[cKDTree(p.observation.points[rows]).query(nodes)[1]]
-        return p.forward.on_loaded(p.observation.node_field(u))
 
     def initial_controls(self, theta) -> np.ndarray:
         if self.inner_name == "lbfgs-forces":
