@@ -32,7 +32,8 @@ import numpy as np
 
 import fenics_elasto  # noqa: F401
 from fenics_elasto.estimate import estimate
-from fenics_elasto.meshing import ORGAN_SIZE, PROSTATE_SIZE, atlas_surfaces, build_scene
+from fenics_elasto.atlas import atlas_surfaces
+from fenics_elasto.meshing import ORGAN_SIZE, PROSTATE_SIZE, build_scene
 from fenics_elasto.objective import InverseProblem
 from fenics_elasto.reduction import train_atlas_bases, train_bases
 from fenics_elasto.scene import load_scene

@@ -42,7 +42,7 @@ import numpy as np
 
 from fenics_elasto.anatomy_repair import Shell, closed_shells, cut_by_planes, enclosed_volume, quiet_vtk, sharp_edges
 from fenics_elasto.errors import UserError, require
-from fenics_elasto.scene import fresh_gmsh_model
+from fenics_elasto.gmsh_models import fresh_gmsh_model
 
 UNITS = ("mm", "cm", "m")
 SPEC_KEYS = ("units", "size", "organ_size", "body", "regions", "cavities", "patches")

@@ -70,7 +70,8 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _mesh(args) -> None:
-    from fenics_elasto.meshing import atlas_surfaces, build_scene
+    from fenics_elasto.atlas import atlas_surfaces
+    from fenics_elasto.meshing import build_scene
 
     def build():  # gmsh meshes on one rank; its verdict goes to all
         require(args.atlas is None or args.name == "prostate-phantom", "--atlas: only prostate-phantom takes an atlas")

@@ -84,7 +84,7 @@ def run_train(patients: list, out: Path, rank: int, atlas_mesh: Path | None = No
     """Bases from example targets: ``patients`` = [(problem.toml, [example, ...]), ...]
     (several only around an atlas), and/or from synthetic examples of the scene
     (``generator``: synthetic.Generator). Writes BASES.npz and its variance plot (.png)."""
-    from fenics_elasto.meshing import atlas_surfaces
+    from fenics_elasto.atlas import atlas_surfaces
     from fenics_elasto.objective import InverseProblem
     from fenics_elasto.reduction import train_atlas_bases, train_bases
     from fenics_elasto.scene import load_scene

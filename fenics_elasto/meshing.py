@@ -1,4 +1,4 @@
-"""Built-in scenes: gmsh meshes plus a ready ``problem.toml``.
+"""Built-in scenes: gmsh meshes plus a ready ``problem.toml`` (templates in ``meshes/*.toml``).
 
 The 2D scenes are gmsh ``.geo`` sources in ``meshes/``; the prostate phantom is built
 with gmsh's OpenCASCADE kernel here because ``--seed`` varies its organs.
@@ -7,160 +7,16 @@ with gmsh's OpenCASCADE kernel here because ``--seed`` varies its organs.
 from __future__ import annotations
 
 from pathlib import Path
+from string import Template
 
 import numpy as np
-from scipy.spatial import cKDTree
 
-from fenics_elasto.errors import UserError, require
-from fenics_elasto.matching import fit_surfaces
-from fenics_elasto.scene import fresh_gmsh_model, gmsh_facet_groups
-from fenics_elasto.surface import quadratic_edges
+from fenics_elasto.atlas import fit_surfaces, mesh_inside, onto_geometry
+from fenics_elasto.errors import require
+from fenics_elasto.gmsh_models import GmshModel, generate, physical_surfaces, write_msh
 
 GEO_DIR = Path(__file__).parent / "meshes"
 SCENES = ("letter-a", "cantilever", "inclusion", "prostate-phantom")
-PHANTOM_LOADED = ("bladder", "rectum")  # the phantom's loaded groups (see PHANTOM_TOML)
-
-
-class GmshModel:
-    """A fresh gmsh model with default options (they are global and would leak
-    from one scene to the next), cleared again on exit."""
-
-    def __init__(self, name: str):
-        self.name = name
-
-    def __enter__(self):
-        return fresh_gmsh_model(self.name)
-
-    def __exit__(self, *exc):
-        import gmsh
-
-        gmsh.clear()
-
-
-def _generate(gmsh, path: Path, dim: int) -> None:
-    try:
-        gmsh.model.mesh.generate(dim)
-    except Exception as err:  # gmsh raises a bare Exception with its last error
-        raise UserError(f"gmsh could not mesh {path.name} at this size ({err}); try another --size") from None
-
-
-def _write_msh(gmsh, path: Path, dim: int) -> None:
-    _generate(gmsh, path, dim)
-    _save(gmsh, path)
-
-
-def _save(gmsh, path: Path) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    gmsh.option.setNumber("Mesh.MshFileVersion", 4.1)
-    gmsh.option.setNumber("Mesh.SaveAll", 0)
-    gmsh.write(str(path))
-
-
-def _node_positions(gmsh) -> np.ndarray:
-    """Coordinates of every node of the current gmsh mesh, indexed by node tag."""
-    tags, coords, _ = gmsh.model.mesh.getNodes()
-    position = np.zeros((int(tags.max()) + 1, 3))
-    position[tags] = coords.reshape(-1, 3)
-    return position
-
-
-def physical_surfaces(gmsh) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """Every facet group of the current 3D gmsh mesh as (points, triangles), the
-    points numbered per group in node-tag order."""
-    position = _node_positions(gmsh)
-    surfaces = {}
-    for name, rows in gmsh_facet_groups(gmsh, 3).items():
-        used, local = np.unique(rows + 1, return_inverse=True)
-        surfaces[name] = (position[used], local.reshape(rows.shape))
-    return surfaces
-
-
-def read_surfaces(msh: Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """The facet groups of a 3D .msh file as (points, triangles)."""
-    require(Path(msh).is_file(), f"{msh}: no such mesh file")
-    with GmshModel("surfaces") as gmsh:
-        gmsh.merge(str(msh))
-        return physical_surfaces(gmsh)
-
-
-def atlas_surfaces(msh: Path, groups=PHANTOM_LOADED) -> dict:
-    """An atlas for ``build_prostate_phantom(atlas=...)``: a mesh's loaded surfaces."""
-    surfaces = read_surfaces(msh)
-    missing = [g for g in groups if g not in surfaces]
-    require(not missing, f"{msh}: no facet group(s) {', '.join(missing)} to serve as the atlas")
-    return {g: surfaces[g] for g in groups}
-
-
-def _onto_geometry(gmsh, faces: list[int], points: np.ndarray) -> np.ndarray:
-    """Each point moved to the closest point of the CAD faces (not of their mesh, whose
-    facets cut inside curved organs: a node there would be a fake displacement)."""
-    candidates = np.stack([np.reshape(gmsh.model.getClosestPoint(2, f, points.ravel())[0], (-1, 3)) for f in faces])
-    nearest = np.argmin(np.linalg.norm(candidates - points, axis=2), axis=0)
-    return candidates[nearest, np.arange(len(points))]
-
-
-def _mesh_inside(gmsh, surfaces: dict, volumes: dict, path: Path) -> None:
-    """Tetrahedralise the volumes bounded by given triangulated surfaces, keeping those
-    triangles -- vertices, and the midpoint nodes of 6-node triangles -- exactly: a
-    new model of discrete surfaces, meshed inside, then made quadratic.
-
-    ``volumes``: name -> the surface groups bounding it (outer and inner shells).
-    The vertices get consecutive node tags in the order of each group's points.
-    """
-    gmsh.model.add("around-surfaces")
-    first, corners, edge_keys, edge_points = 1, [], [], []
-    for tag, (name, (points, triangles)) in enumerate(surfaces.items(), 1):
-        vertices = np.unique(triangles[:, :3])
-        node_tag = np.zeros(len(points), np.int64)
-        node_tag[vertices] = np.arange(first, first + len(vertices))
-        gmsh.model.addDiscreteEntity(2, tag)
-        gmsh.model.mesh.addNodes(2, tag, node_tag[vertices], points[vertices].ravel())
-        gmsh.model.mesh.addElementsByType(tag, 2, [], node_tag[triangles[:, :3]].ravel())
-        gmsh.model.addPhysicalGroup(2, [tag], name=name)
-        corners.append(points[vertices])
-        if triangles.shape[1] == 6:
-            pairs, middle = quadratic_edges(triangles)
-            edge_keys.append(_edge_key(node_tag[pairs] - 1))
-            edge_points.append(points[middle])
-        first += len(vertices)
-    tag_of = {name: tag for tag, name in enumerate(surfaces, 1)}
-    volume = {name: gmsh.model.geo.addVolume([gmsh.model.geo.addSurfaceLoop([tag_of[s] for s in shells])])
-              for name, shells in volumes.items()}
-    gmsh.model.geo.synchronize()
-    for name, tag in volume.items():
-        gmsh.model.addPhysicalGroup(3, [tag], name=name)
-    # The surfaces carry the sizes; the volume grades between them.
-    gmsh.option.setNumber("Mesh.MeshSizeExtendFromBoundary", 1)
-    gmsh.option.setNumber("Mesh.ElementOrder", 1)
-    _generate(gmsh, path, 3)
-    if edge_keys:
-        _curve_surfaces(gmsh, np.concatenate(corners), np.concatenate(edge_keys), np.concatenate(edge_points))
-    _save(gmsh, path)
-
-
-def _edge_key(pairs: np.ndarray) -> np.ndarray:
-    """One integer per edge of (sorted) node-tag pairs."""
-    return pairs[:, 0] * (1 << 31) + pairs[:, 1]
-
-
-def _curve_surfaces(gmsh, corners: np.ndarray, keys: np.ndarray, midpoints: np.ndarray) -> None:
-    """Quadratic elements whose surface edges (``keys`` of pairs of rows of ``corners``)
-    have the given midpoint nodes. setOrder renumbers nodes, so corners are found by
-    position."""
-    gmsh.option.setNumber("Mesh.SecondOrderLinear", 1)  # straight first; the surface ones are moved below
-    gmsh.model.mesh.setOrder(2)
-    keys, first = np.unique(keys, return_index=True)
-    midpoints = midpoints[first]
-    position = _node_positions(gmsh)
-    tree = cKDTree(corners)
-    for _, tag in gmsh.model.getEntities(2):
-        nodes = gmsh.model.mesh.getElementsByType(9, tag)[1].reshape(-1, 6).astype(np.int64)
-        gap, corner = tree.query(position[nodes[:, :3]])
-        pairs, middle = quadratic_edges(np.c_[corner, nodes[:, 3:]])
-        at = np.searchsorted(keys, _edge_key(pairs))
-        found = (keys[np.minimum(at, len(keys) - 1)] == _edge_key(pairs)) & np.repeat(gap.max(axis=1) < 1e-9, 3)
-        for node, point in zip(middle[found], midpoints[at[found]]):
-            gmsh.model.mesh.setNode(int(node), point, [])
 
 
 def _mesh_geo(geo: str, path: Path, dim: int, numbers: dict) -> None:
@@ -168,126 +24,27 @@ def _mesh_geo(geo: str, path: Path, dim: int, numbers: dict) -> None:
         for key, value in numbers.items():
             gmsh.parser.setNumber(key, [float(value)])
         gmsh.merge(str(GEO_DIR / geo))
-        _write_msh(gmsh, path, dim)
+        write_msh(gmsh, path, dim)
 
 
-LETTER_A_TOML = """\
-# The paper's 2D experiment: letter A, feet clamped, top loaded, outline matched.
-mesh = "letter_a.msh"
-plane = "strain"
-degree = 2            # P2 is accurate; degree = 1 is the paper's setting (locks as nu -> 0.5)
 
-[materials.letter]
-E  = 10.0             # with unknown forces only nu is identifiable for one material
-nu = {{ estimate = true, initial = 0.3, bounds = [0.0, 0.499] }}
 
-[boundary]
-fixed   = ["feet"]
-loaded  = ["top"]
-matched = ["outline"]
 
-# Used by `simulate` to make a synthetic target: the top is pushed down and sideways.
-[boundary.displacement.top]
-value = [0.4, -0.8]
-
-[target]
-surface = "target.vtp"   # e.g. the surface.vtp written by `simulate`
-"""
-
-CANTILEVER_TOML = """\
-# Plane-stress cantilever (Timoshenko-Goodier): support clamped, end shear at the tip.
-mesh = "cantilever.msh"
-plane = "stress"
-degree = 2
-
-[materials.beam]
-E  = 1000.0
-nu = 0.3
-
-[boundary]
-fixed   = ["support"]
-loaded  = ["tip"]
-matched = ["top", "bottom"]
-
-# Used by `simulate`: total force on the tip, spread as a uniform traction.
-[boundary.load]
-tip = [0.0, -1.0]
-"""
-
-INCLUSION_TOML = """\
-# A stiff inclusion in a softer plate: recover the E ratio from the outline and the
-# inclusion interface. Bottom clamped, top loaded (unknown forces).
-mesh = "inclusion.msh"
-plane = "strain"
-degree = 2
-
-[materials.inclusion]
-E  = {{ estimate = true, initial = 30.0, bounds = [1.0, 1000.0] }}
-nu = 0.3
-
-[materials.matrix]
-E  = 10.0             # the reference
-nu = 0.3
-
-[boundary]
-fixed   = ["bottom"]
-loaded  = ["top"]
-matched = ["outline", "interface"]
-
-# Used by `simulate`: the top pressed down and sheared.
-[boundary.displacement.top]
-value = [0.5, -0.8]
-
-[target]
-surfaces = {{ outline = "target_outline.vtp", interface = "target_interface.vtp" }}
-"""
-
-PHANTOM_TOML = """\
-# Synthetic pelvis: soft tissue with a bladder cavity, a prostate and a rectum tube,
-# clamped at the bones. Units: cm and kPa.
-mesh = "phantom.msh"
-degree = 2
-
-[materials.prostate]
-E  = {{ estimate = true, initial = 30.0, bounds = [2.0, 300.0] }}
-nu = 0.4
-
-[materials.tissue]
-E  = 10.0             # the reference: with unknown forces only E ratios are identifiable
-nu = 0.4
-
-# Phi*(E) is smooth and single-welled in log E here: three scan points start it well.
-[optimizer]
-scan = 3
-
-[boundary]
-fixed   = ["bones"]
-loaded  = ["bladder", "rectum"]
-matched = ["bladder", "prostate_surface", "rectum"]
-
-# Used by `simulate`: the bladder inflated by {inflation:.0%} about its centre.
-[boundary.displacement.bladder]
-scale  = {inflation}
-center = [{cx:.4f}, {cy:.4f}, {cz:.4f}]
-
-[target]
-surface = "target.vtp"
-"""
 
 
 def build_letter_a(out: Path, size: float | None = None) -> Path:
     _mesh_geo("letter_a.geo", out / "letter_a.msh", 2, {"h": size or 0.4})
-    return _write_toml(out, LETTER_A_TOML.format())
+    return _write_toml(out, "letter_a.toml")
 
 
 def build_cantilever(out: Path, size: float | None = None, length: float = 8.0, half_height: float = 1.0) -> Path:
     _mesh_geo("cantilever.geo", out / "cantilever.msh", 2, {"h": size or 0.25, "L": length, "c": half_height})
-    return _write_toml(out, CANTILEVER_TOML)
+    return _write_toml(out, "cantilever.toml")
 
 
 def build_inclusion(out: Path, size: float | None = None, radius: float = 2.0) -> Path:
     _mesh_geo("inclusion.geo", out / "inclusion.msh", 2, {"h": size or 0.5, "r": radius})
-    return _write_toml(out, INCLUSION_TOML.format())
+    return _write_toml(out, "inclusion.toml")
 
 
 def phantom_organs(seed: int) -> dict:
@@ -423,23 +180,24 @@ def build_prostate_phantom(out: Path, size: float | None = None, seed: int = 0, 
         # by their sag, ~0.03 cm here: enough to bias E).
         gmsh.option.setNumber("Mesh.ElementOrder", 2)
         if atlas is None:
-            _write_msh(gmsh, out / "phantom.msh", 3)
+            write_msh(gmsh, out / "phantom.msh", 3)
         else:
             require(set(atlas) <= set(faces), f"atlas surfaces {sorted(atlas)}: the phantom has only {sorted(faces)}")
-            _generate(gmsh, out / "phantom.msh", 2)
+            generate(gmsh, out / "phantom.msh", 2)
             surfaces = physical_surfaces(gmsh)
             for g, (points, triangles) in fit_surfaces(atlas, {g: surfaces[g] for g in atlas}).items():
-                surfaces[g] = (_onto_geometry(gmsh, faces[g], points), triangles)
-            _mesh_inside(gmsh, surfaces, {"tissue": list(faces) + ["prostate_surface"],
+                surfaces[g] = (onto_geometry(gmsh, faces[g], points), triangles)
+            mesh_inside(gmsh, surfaces, {"tissue": list(faces) + ["prostate_surface"],
                                           "prostate": ["prostate_surface"]}, out / "phantom.msh")
 
     c = organs["bladder"]["center"]
-    return _write_toml(out, PHANTOM_TOML.format(inflation=0.1, cx=c[0], cy=c[1], cz=c[2]))
+    return _write_toml(out, "phantom.toml", inflation=0.1, inflation_percent="10%", cx=f"{c[0]:.4f}", cy=f"{c[1]:.4f}", cz=f"{c[2]:.4f}")
 
 
-def _write_toml(out: Path, text: str) -> Path:
+def _write_toml(out: Path, template: str, **values) -> Path:
+    """The scene's problem.toml from its template in meshes/ ($name placeholders filled)."""
     path = out / "problem.toml"
-    path.write_text(text)
+    path.write_text(Template((GEO_DIR / template).read_text()).substitute(values))
     return path
 
 

@@ -20,6 +20,7 @@ from dolfinx.io.utils import distribute_entity_data
 
 from fenics_elasto.config import PROBLEM, apply_overrides, check_gdim, read_toml, validate_problem
 from fenics_elasto.errors import UserError, on_root, require
+from fenics_elasto.gmsh_models import fresh_gmsh_model, physical_facets
 from fenics_elasto.logs import log
 
 ELASTIC_KEYS = ("E", "nu")
@@ -146,36 +147,6 @@ class Parameters:
 # --------------------------------------------------------------------------- mesh
 
 
-def fresh_gmsh_model(name: str):
-    """An empty gmsh model with default options (options are global: they would leak
-    from one model to the next); gmsh stays quiet."""
-    import gmsh
-
-    if not gmsh.isInitialized():
-        gmsh.initialize(interruptible=False)
-    gmsh.option.setNumber("General.Terminal", 0)
-    gmsh.clear()
-    gmsh.option.restoreDefaults()
-    gmsh.option.setNumber("General.Terminal", 0)
-    gmsh.model.add(name)
-    return gmsh
-
-
-def gmsh_facet_groups(gmsh, tdim: int) -> dict[str, np.ndarray]:
-    """Every facet physical group's facets as rows of 0-based input node indices."""
-    groups = {}
-    for dim, tag in gmsh.model.getPhysicalGroups(tdim - 1):
-        name = gmsh.model.getPhysicalName(dim, tag) or str(tag)
-        rows = []
-        for entity in gmsh.model.getEntitiesForPhysicalGroup(dim, tag):
-            types, _, nodes = gmsh.model.mesh.getElements(dim, entity)
-            for etype, enodes in zip(types, nodes):
-                n = gmsh.model.mesh.getElementProperties(etype)[3]
-                rows.append(np.asarray(enodes, dtype=np.int64).reshape(-1, n) - 1)
-        groups[name] = np.concatenate(rows) if rows else np.empty((0, tdim), np.int64)
-    return groups
-
-
 def read_msh(path: Path, comm=MPI.COMM_WORLD):
     """Read a gmsh .msh into (mesh, cell_tags, cell group names->tag, facet groups).
 
@@ -205,7 +176,7 @@ def read_msh(path: Path, comm=MPI.COMM_WORLD):
         require(tdim == 3 or np.allclose(coords[:, 2], 0), f"{path}: a 2D mesh must lie in the z = 0 plane")
         cell_groups = [t for d, t in groups if d == tdim]
         require(cell_groups, f"{path}: no cell (region) physical groups")
-        facet_rows.update(gmsh_facet_groups(gmsh, tdim))
+        facet_rows.update(physical_facets(gmsh, tdim))
         return tdim, sorted(facet_rows)
 
     try:

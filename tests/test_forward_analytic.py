@@ -9,7 +9,8 @@ import dolfinx
 from dolfinx import fem
 
 from fenics_elasto.elasticity import ElasticModel
-from fenics_elasto.meshing import GmshModel, build_cantilever
+from fenics_elasto.gmsh_models import GmshModel
+from fenics_elasto.meshing import build_cantilever
 from fenics_elasto.scene import load_scene
 from fenics_elasto.simulate import material_values, prescribed_function, simulate
 

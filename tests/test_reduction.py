@@ -114,8 +114,8 @@ def test_patients_meshed_around_an_atlas_share_its_nodes(tmp_path):
     """A patient meshed around the atlas's bladder and rectum has exactly the atlas
     nodes as loaded nodes; they sit where the organ's own shape change takes them;
     numbering round-trips; a patient meshed on its own is refused."""
-    from fenics_elasto.meshing import atlas_surfaces, phantom_organs
-    from fenics_elasto.reduction import atlas_nodes, atlas_order, from_atlas, to_atlas
+    from fenics_elasto.atlas import atlas_nodes, atlas_order, atlas_surfaces, from_atlas, to_atlas
+    from fenics_elasto.meshing import phantom_organs
 
     build_scene("prostate-phantom", tmp_path / "atlas", size=1.6)
     atlas = atlas_surfaces(tmp_path / "atlas" / "phantom.msh")
@@ -185,6 +185,6 @@ def test_held_out_patient_with_bases_from_others(tmp_path, capsys):
 
 
 def read_atlas(msh):
-    from fenics_elasto.meshing import atlas_surfaces
+    from fenics_elasto.atlas import atlas_surfaces
 
     return atlas_surfaces(msh)
