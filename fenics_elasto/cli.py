@@ -85,7 +85,7 @@ def _mesh(args) -> None:
 def _scene(args) -> None:
     from fenics_elasto.anatomy import build_scene_from_spec
 
-    path = on_root(MPI.COMM_WORLD, lambda: build_scene_from_spec(args.spec, args.out, args.size, say=log.info))
+    path = on_root(MPI.COMM_WORLD, lambda: build_scene_from_spec(args.spec, args.out, args.size))
     log.info(f"wrote {path}")
 
 
