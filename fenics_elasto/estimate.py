@@ -1,4 +1,4 @@
-"""The nested estimate (method.md §4): materials outside, boundary controls inside.
+"""The nested estimate (docs/method.md §5): materials outside, boundary controls inside.
 
 The outer loop minimises the profile Phi*(theta) (functional.py) over the estimated
 constants in s = (log E, nu) with bounded L-BFGS-B and the envelope gradient. Start:

@@ -1,4 +1,4 @@
-"""The profile functional Phi*(theta) = min over the boundary controls (method.md §4).
+"""The profile functional Phi*(theta) = min over the boundary controls (docs/method.md §5).
 
 Phi* is what the outer loop minimises over the materials, in s = (log E, nu). Two
 implementations behind one interface, ``value_and_gradient(s)``:

@@ -1,4 +1,4 @@
-"""Inner problems: the boundary controls at fixed materials (method.md §4).
+"""Inner problems: the boundary controls at fixed materials (docs/method.md §5).
 
 Every solver returns an ``InnerResult`` with the optimum's full evaluation, gradients
 included (the envelope theorem makes dPhi*/dtheta the partial derivative there).

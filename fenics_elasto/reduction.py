@@ -1,4 +1,4 @@
-"""Reduced force bases (method.md §5): PCA of example boundary displacements.
+"""Reduced force bases (docs/method.md §6): PCA of example boundary displacements.
 
 Training matches the source's matched nodes to each example target surface
 (iterative surface matching), keeps the loaded nodes' displacements, and takes the
