@@ -17,23 +17,22 @@ can represent.
 
 from __future__ import annotations
 
-import itertools
 import time
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import minimize
 from scipy.spatial import cKDTree
 
 from fenics_elasto.errors import UserError, require
-from fenics_elasto.functional import Profile, SurrogateProfile
+from fenics_elasto.functional import Profile, SurrogateProfile, minimize_on_surrogate, minimize_profile
 from fenics_elasto.logs import log
 from fenics_elasto.inner import GaussNewton, InnerResult, LBFGS
 from fenics_elasto.interrupts import Interrupted
 from fenics_elasto.matching import match_surface
 from fenics_elasto.misfit import SurfaceTerm
 from fenics_elasto.objective import Evaluation, InverseProblem
-from fenics_elasto.posterior import Posterior, laplace
+from fenics_elasto.posterior import Posterior, posterior_at
+from fenics_elasto.reduction import bases_fit
 from fenics_elasto.surrogate import MaterialSurrogate
 
 
@@ -201,40 +200,28 @@ class Estimator:
             return self.problem.forward.reaction_forces(theta, self.problem.forward.from_boundary(theta, self.d0))
         return self.d0 if self.basis is None else self.basis.T @ self.d0
 
-    def scan_points(self) -> list[np.ndarray]:
-        axes = []
-        for (lo, hi), is_E in zip(self.params.bounds, self.params.is_E):
-            n = self.options.scan if len(self.params) == 1 else max(2, min(self.options.scan, 3))
-            q = (np.arange(n) + 0.5) / n
-            axes.append(np.exp(np.log(lo) + q * (np.log(hi) - np.log(lo))) if is_E else lo + q * (hi - lo))
-        return [np.array(point) for point in itertools.product(*axes)]
-
     # --- the loop
 
     def run(self) -> None:
-        points = self.scan_points()
+        """Scan, check the data determine the materials, minimise Phi*, polish."""
+        n = self.options.scan if len(self.params) == 1 else max(2, min(self.options.scan, 3))
+        points = self.params.scan(n)
         if self.surrogate is None:
             points = [self.params.initial] + points
         log.info(f"scan of {len(points)} material values (start: surface matching; inner: {self.inner_name})")
         for theta in points:
             self.profile.solve(theta, "scan", self._start_for(theta))
         self.check_identifiable()
+        xtol = self.options.outer_xtol * np.where(self.params.is_E, 1.0, 0.1)
         if self.surrogate is None:
-            self.outer_solved()
+            self.outer_iterations = minimize_profile(self.profile, xtol, self.options.outer_maxiter)
         else:
-            self.outer_on_surrogate()
+            self.outer_iterations = minimize_on_surrogate(self.profile, self.surrogate, xtol, self.options.outer_maxiter)
         self.polish()
 
     def posterior(self, result: InnerResult | None = None) -> Posterior | None:
-        """The Laplace posterior at a solve (default: the best), where the inner solver
-        gave the controls' response (Gauss-Newton)."""
-        result = result or self.profile.best()
-        lin = self.profile.linearisation(result)
-        if lin is None:
-            return None
-        s = next(s for s, r, _ in self.profile.solved if r is result)
         noise = (self.problem.scene.config["target"] or {}).get("noise")
-        return laplace(lin, self.params.labels, s, self.params.is_E, noise)
+        return posterior_at(self.profile, result or self.profile.best(), noise)
 
     def check_identifiable(self) -> None:
         """After the scan: a constant whose 95 % interval (at the best scan value) is wider
@@ -252,50 +239,6 @@ class Estimator:
 
     def _start_for(self, theta):
         return None if self.inner_name == "gauss-newton" else self.initial_controls(theta)
-
-    def xtol(self) -> np.ndarray:
-        return self.options.outer_xtol * np.where(self.params.is_E, 1.0, 0.1)
-
-    def outer_solved(self) -> None:
-        """L-BFGS-B over the materials, every value solved in full."""
-        scale = max(self.profile.best().value, 1e-300)
-        last = {"s": self.params.to_s(self.profile.best_theta())}
-
-        def objective(s):
-            value, grad = self.profile.value_and_gradient(s)
-            return value / scale, grad / scale
-
-        def settle(intermediate_result):
-            self.outer_iterations += 1
-            settled = np.all(np.abs(intermediate_result.x - last["s"]) < self.xtol())
-            last["s"] = intermediate_result.x.copy()
-            if settled:
-                raise StopIteration  # more digits of E would cost factorizations, not accuracy
-
-        log.info("outer L-BFGS-B over the materials (envelope gradient)")
-        minimize(objective, last["s"], jac=True, method="L-BFGS-B", bounds=self.params.s_bounds(), callback=settle,
-                 options={"maxiter": self.options.outer_maxiter, "ftol": 1e-12, "gtol": 1e-9})
-
-    def outer_on_surrogate(self) -> None:
-        """Optimise the materials on the surrogate, solve its optimum in full (a new
-        snapshot), repeat until the optimum lands where a full solve already is."""
-        log.info(f"outer L-BFGS-B on the reduced-basis response in the materials "
-                 f"({self.profile.surrogate.size} directions)")
-        def scaled(s, scale):
-            value, gradient = self.surrogate.value_and_gradient(s)
-            return value / scale, gradient / scale
-
-        for _ in range(self.options.outer_maxiter):
-            res = minimize(scaled, self.params.to_s(self.profile.best_theta()), args=(max(self.profile.best().value, 1e-300),),
-                           jac=True, method="L-BFGS-B",
-                           bounds=self.params.s_bounds(), options={"maxiter": 100, "ftol": 1e-14, "gtol": 1e-10})
-            self.outer_iterations += 1
-            theta = self.params.to_theta(res.x)
-            log.info(f"  surrogate optimum {self.params.describe(theta)}  (equation residual "
-                     f"{self.profile.surrogate.residual(theta):.1e}, {res.nfev} evaluations)")
-            if any(np.all(np.abs(res.x - s) < self.xtol()) for s, _, _ in self.profile.solved):
-                return
-            self.profile.solve(theta, "outer")
 
     def polish(self) -> None:
         """An L-BFGS inner solve warm-started along the path may stop above the inner
@@ -319,16 +262,6 @@ class Estimator:
             return theta, best, best.controls
         return theta, best, forward.reaction_forces(theta, best.evaluation.u)
 
-    def bases_fit(self) -> dict | None:
-        """How much of the wall motion surface matching finds the bases can represent:
-        |W W^T d0|^2 / |d0|^2 (1: all of it)."""
-        if self.basis is None:
-            return None
-        d0 = self.d0
-        kept = self.basis @ (self.basis.T @ d0)
-        total = float(d0 @ d0)
-        explained = float(kept @ kept) / total if total > 0 else 1.0
-        return {"wall_motion_explained": explained}
 
 
 def estimate(problem: InverseProblem, options: Options | None = None, basis: np.ndarray | None = None) -> EstimateResult:
@@ -383,7 +316,7 @@ def _warnings(estimator: Estimator, theta, interrupted: bool) -> list[str]:
     for label, value, (lo, hi) in zip(estimator.params.labels, theta, estimator.params.bounds):
         if np.isclose(value, lo, rtol=1e-3) or np.isclose(value, hi, rtol=1e-3):
             out.append(f"{label} = {value:.4g} is at its bound [{lo:g}, {hi:g}]: widen the bounds or check the set-up")
-    fit = estimator.bases_fit()
+    fit = bases_fit(estimator.basis, estimator.d0)
     if fit is not None and fit["wall_motion_explained"] < 0.9:
         out.append(f"the bases explain {100 * fit['wall_motion_explained']:.0f} % of the wall motion surface "
                    "matching finds; train with more or other examples (e.g. --synthetic)")
@@ -410,7 +343,7 @@ def _record(estimator: Estimator, theta, best: InnerResult, phi_undeformed, warn
         "dofs": problem.model.num_dofs,
         "force_dofs": problem.force_dofs,
         "rank": None if estimator.basis is None else int(estimator.basis.shape[1]),
-        "bases_fit": estimator.bases_fit(),
+        "bases_fit": bases_fit(estimator.basis, estimator.d0),
         "inner_solver": estimator.inner_name,
         "match_nodes": "vertices" if problem.observation.vertices_only else "all",
         "degree": problem.scene.degree,

@@ -27,6 +27,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.optimize import minimize
 
 from fenics_elasto.logs import log
 from fenics_elasto.inner import GaussNewton, InnerResult
@@ -150,3 +151,54 @@ class SurrogateProfile:
         g = self.fit_inner.misfit.gradient(fit.residual)
         grad_theta = np.array([np.sum(g * (dJk @ fit.q)) for dJk in dJ])
         return fit.phi + fit.prior, grad_theta * self.params.dtheta_ds(theta)
+
+
+# --------------------------------------------------------------------------- the outer loop
+
+
+def minimize_profile(profile: Profile, xtol: np.ndarray, maxiter: int) -> int:
+    """L-BFGS-B over s from the best solved value, every value solved in full; stops once
+    a step moves every constant by less than ``xtol`` (more digits of E would cost
+    factorizations, not accuracy). Returns the iterations."""
+    params = profile.params
+    scale = max(profile.best().value, 1e-300)  # L-BFGS-B's tolerances are absolute below 1
+    last = {"s": params.to_s(profile.best_theta()), "iterations": 0}
+
+    def objective(s):
+        value, grad = profile.value_and_gradient(s)
+        return value / scale, grad / scale
+
+    def settle(intermediate_result):
+        last["iterations"] += 1
+        settled = np.all(np.abs(intermediate_result.x - last["s"]) < xtol)
+        last["s"] = intermediate_result.x.copy()
+        if settled:
+            raise StopIteration
+
+    log.info("outer L-BFGS-B over the materials (envelope gradient)")
+    minimize(objective, last["s"], jac=True, method="L-BFGS-B", bounds=params.s_bounds(), callback=settle,
+             options={"maxiter": maxiter, "ftol": 1e-12, "gtol": 1e-9})
+    return last["iterations"]
+
+
+def minimize_on_surrogate(profile: Profile, surrogate: SurrogateProfile, xtol: np.ndarray, maxiter: int) -> int:
+    """Optimise s on the surrogate, solve its optimum in full (a new snapshot), repeat
+    until the optimum lands where a full solve already is. Returns the rounds."""
+    params = profile.params
+    log.info(f"outer L-BFGS-B on the reduced-basis response in the materials ({profile.surrogate.size} directions)")
+
+    def scaled(s, scale):
+        value, gradient = surrogate.value_and_gradient(s)
+        return value / scale, gradient / scale
+
+    for rounds in range(1, maxiter + 1):
+        res = minimize(scaled, params.to_s(profile.best_theta()), args=(max(profile.best().value, 1e-300),),
+                       jac=True, method="L-BFGS-B", bounds=params.s_bounds(),
+                       options={"maxiter": 100, "ftol": 1e-14, "gtol": 1e-10})
+        theta = params.to_theta(res.x)
+        log.info(f"  surrogate optimum {params.describe(theta)}  (equation residual "
+                 f"{profile.surrogate.residual(theta):.1e}, {res.nfev} evaluations)")
+        if any(np.all(np.abs(res.x - s) < xtol) for s, _, _ in profile.solved):
+            return rounds
+        profile.solve(theta, "outer")
+    return maxiter

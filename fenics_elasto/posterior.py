@@ -75,6 +75,17 @@ class Posterior:
                 if not np.isfinite(sd) or 2 * 1.959964 * sd > hi - lo]
 
 
+def posterior_at(profile, result, noise: float | None = None) -> Posterior | None:
+    """The posterior at one of the profile's solves, where the inner solver gave the
+    controls' response (Gauss-Newton); None otherwise."""
+    lin = profile.linearisation(result)
+    if lin is None:
+        return None
+    s = next(s for s, r, _ in profile.solved if r is result)
+    params = profile.params
+    return laplace(lin, params.labels, s, params.is_E, noise)
+
+
 def laplace(lin: Linearisation, labels, s, is_E, noise: float | None = None) -> Posterior:
     """The posterior of s from a Linearisation at the optimum (noise: known std or None)."""
     A = np.hstack([lin.A_q, lin.A_s])

@@ -158,6 +158,16 @@ def held_out_energy(data: np.ndarray, rank: int, first=None, folds: int = 5) -> 
     return kept / total if total > 0 else None
 
 
+def bases_fit(W: np.ndarray | None, d0: np.ndarray) -> dict | None:
+    """How much of the wall motion surface matching found (d0) the bases can represent:
+    |W W^T d0|^2 / |d0|^2 (1: all of it); None without bases."""
+    if W is None:
+        return None
+    kept = W @ (W.T @ d0)
+    total = float(d0 @ d0)
+    return {"wall_motion_explained": float(kept @ kept) / total if total > 0 else 1.0}
+
+
 def load_bases(path: Path, problem: InverseProblem, rank: int | None) -> np.ndarray:
     """W of bases from ``train`` on this scene's loaded nodes (refused if they do not fit)."""
     bases = Bases.read(path)
