@@ -25,6 +25,18 @@ def fresh_gmsh_model(name: str):
     return gmsh
 
 
+def open_msh(path: Path, name: str | None = None):
+    """A fresh gmsh model holding the mesh file ``path``; a missing or unreadable file
+    is one line naming it."""
+    require(Path(path).is_file(), f"{path}: no such mesh file")
+    gmsh = fresh_gmsh_model(name or Path(path).stem)
+    try:
+        gmsh.merge(str(path))
+    except Exception as err:  # gmsh raises a bare Exception with its last error
+        raise UserError(f"{path}: gmsh cannot read it ({err})") from None
+    return gmsh
+
+
 class GmshModel:
     """A fresh gmsh model with default options (they are global and would leak
     from one scene to the next), cleared again on exit."""

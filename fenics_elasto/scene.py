@@ -21,7 +21,7 @@ from dolfinx.io.utils import distribute_entity_data
 
 from fenics_elasto.config import PROBLEM, apply_overrides, check_gdim, read_toml, validate_problem
 from fenics_elasto.errors import UserError, on_root, require
-from fenics_elasto.gmsh_models import fresh_gmsh_model, physical_facets
+from fenics_elasto.gmsh_models import open_msh, physical_facets
 from fenics_elasto.logs import log
 
 ELASTIC_KEYS = ("E", "nu")
@@ -170,12 +170,7 @@ def read_msh(path: Path, comm=MPI.COMM_WORLD):
     facet_rows = {}  # rank 0: every facet group's facets as node rows
 
     def open_model():
-        require(path.is_file(), f"{path}: no such mesh file")
-        fresh_gmsh_model(path.stem)
-        try:
-            gmsh.merge(str(path))
-        except Exception as err:  # gmsh raises a bare Exception with its last error
-            raise UserError(f"{path}: gmsh cannot read it ({err})") from None
+        open_msh(path)
         groups = gmsh.model.getPhysicalGroups()
         require(groups, f"{path}: the mesh has no physical groups")
         tdim = max(d for d, _ in groups)

@@ -11,7 +11,7 @@ import pytest
 from fenics_elasto import meshing
 from fenics_elasto.config import (
     PROBLEM, SCENE_SPEC, apply_overrides, check_gdim, parse_override, read_problem, read_scene_spec,
-    validate_problem, validate_scene_spec,
+    toml_text, validate_problem, validate_scene_spec,
 )
 from fenics_elasto.errors import UserError
 
@@ -461,3 +461,14 @@ def test_target_forms():
     per_group, _ = problem({"target": {"surface": DROP, "surfaces": {"outline": "o.vtp"}, "landmarks": "l.csv",
                                        "landmark_weight": 2, "noise": 0.05}})
     assert per_group["target"]["surfaces"] == {"outline": "o.vtp"} and per_group["target"]["landmark_weight"] == 2.0
+
+
+def test_toml_text_reads_back_as_written():
+    """What toml_text writes, tomllib reads back equal: nested and empty tables, inline
+    tables in arrays, matrices, inf, quotes, backslashes, non-ASCII and dotted keys."""
+    import tomllib
+
+    data = patched(BASE, {"boundary": {"displacement": {"top": {"gradient": [[0.1, 0.0], [0.0, -2e-5]]}}},
+                          "target": {"surfaces": {"out line": 'a "b"\\c\u00fc.vtp'}, "surface": DROP},
+                          "optimizer": {}, "x": {"y": [{"z": 1}], "w": math.inf, "flag": False}})
+    assert tomllib.loads(toml_text(data)) == data

@@ -29,7 +29,12 @@ def timoshenko(x, y, mod=np):
 
 
 def solve_cantilever(tmp_path, h, degree):
-    problem = build_cantilever(tmp_path / f"c{h}", size=h, length=L, half_height=C)
+    return cantilever_errors(build_cantilever(tmp_path / f"c{h}", size=h, length=L, half_height=C), degree)
+
+
+def cantilever_errors(problem, degree):
+    """(L2 error, tip deflection, mean cell size) of the cantilever scene ``problem``
+    (built with length L, half height C) against Timoshenko-Goodier."""
     scene = load_scene(problem, [f"degree={degree}", f"materials.beam.E={E}", f"materials.beam.nu={NU}"])
     model = ElasticModel(scene)
     mesh = scene.mesh
