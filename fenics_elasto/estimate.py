@@ -42,7 +42,7 @@ class Options:
     inner_maxiter: int = 400
     outer_maxiter: int = 40
     outer_xtol: float = 1e-3  # the outer loop stops once a step moves log E by less (nu: a tenth of it)
-    scan: int = 5  # material values per estimated constant in the initial scan
+    scan: int = 5  # material values per estimated constant in the initial scan (1: the initial values only)
     inner_tol: float = 1e-6  # relative decrease of Phi that ends an L-BFGS inner loop (Gauss-Newton: its square)
     full_gn_limit: int = 1500  # largest full force space for which "auto" picks Gauss-Newton
     anchor: float = 1e-4  # Gauss-Newton prior towards the surface-matched start, relative to the data curvature
@@ -205,8 +205,8 @@ class Estimator:
     def run(self) -> None:
         """Scan, check the data determine the materials, minimise Phi*, polish."""
         n = self.options.scan if len(self.params) == 1 else max(2, min(self.options.scan, 3))
-        points = self.params.scan(n)
-        if self.surrogate is None:
+        points = self.params.scan(n) if self.options.scan > 1 else []  # scan = 1: the initial values only
+        if self.surrogate is None or not points:
             points = [self.params.initial] + points
         log.info(f"scan of {len(points)} material values (start: surface matching; inner: {self.inner_name})")
         for theta in points:

@@ -286,3 +286,21 @@ def test_two_ranks_refine_and_transfer_as_one(pair, tmp_path):
         run_mpi_script(script, ranks, coarse.path, tmp_path / f"r{ranks}", tmp_path / f"w{ranks}.npy")
     assert (tmp_path / "r1" / "inclusion.msh").read_bytes() == (tmp_path / "r2" / "inclusion.msh").read_bytes()
     assert np.abs(np.load(tmp_path / "w1.npy") - np.load(tmp_path / "w2.npy")).max() < 1e-12
+
+
+@pytest.mark.slow
+def test_estimate_check_mesh_reports_how_far_the_answer_moves(tmp_path):
+    """`estimate --check-mesh`: the estimate again on the source split once; on the
+    curved inclusion against a 2x finer target E moves by well under 1 %."""
+    from conftest import run_cli
+    from targets import fine_simulation
+
+    source = build_scene("inclusion", tmp_path / "source")
+    fine_simulation("inclusion", tmp_path / "fine", 0.25, ["materials.inclusion.E=50.0"])
+    target = ", ".join(f"{g}='{tmp_path / 'fine' / 'target' / f'surface_{g}.vtp'}'" for g in ("outline", "interface"))
+    proc = run_cli("estimate", source, "--out", tmp_path / "out", "--check-mesh", "--set", f"target.surfaces={{{target}}}")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    check = json.loads((tmp_path / "out" / "result.json").read_text())["mesh_check"]
+    assert check["refined_dofs"] > 3 * json.loads((tmp_path / "out" / "result.json").read_text())["dofs"]
+    assert abs(check["change_percent"]["inclusion.E"]) < 1.0, check
+    assert abs(check["estimated"]["inclusion.E"] - 50.0) < 1.0, check
