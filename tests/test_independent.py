@@ -11,7 +11,7 @@ from fenics_elasto.surface import read_landmarks, read_surface
 
 # Cheap sizes: the checks below hold at any size; the defaults are for estimates.
 LETTER = {"size": 0.32}
-INCLUSION = {"size": 0.4, "spacing": 0.02}
+INCLUSION = {"size": 0.4, "spacing": 0.02, "top": (0.3, 0.05, -0.5, -0.02)}
 PHANTOM = {"walls": 0.8, "prostate": 0.5, "far": 2.5, "spacing": 0.08}
 
 
@@ -163,8 +163,9 @@ def test_inclusion_scene_and_targets_load(truth_dir):
     outline, interface = read_surface(files["outline"], 2), read_surface(files["interface"], 2)
     bottom = outline.points[np.abs(outline.points[:, 1] + 3) < 1e-12]
     assert len(bottom) > 400  # clamped: the bottom did not move
-    x = (outline.points[:, 0] - 0.25) / 1.1  # the top moved by (0.25 + 0.1 x, -0.3 - 0.02 x^2): P2 is exact
-    on_top = np.abs(outline.points[:, 1] - 3 - ind.inclusion_top_motion(np.array([x, 0 * x]))[1]) < 1e-10
+    a, b, _, _ = INCLUSION["top"]  # the top moved by (a + b x, c + d x^2), which P2 interpolates exactly
+    x = (outline.points[:, 0] - a) / (1 + b)
+    on_top = np.abs(outline.points[:, 1] - 3 - ind.inclusion_top_motion(INCLUSION["top"])(np.array([x, 0 * x]))[1]) < 1e-10
     assert on_top.sum() >= 10 / INCLUSION["spacing"]
     radius = np.linalg.norm(interface.points, axis=1)
     assert 0.01 < np.abs(radius - 1.2).max() < 0.5  # the circle deformed
