@@ -105,6 +105,7 @@ def quadratic_mesh(gmsh, dim: int) -> FEMesh:
     points = coords.reshape(-1, 3)[:, :dim]
     cell_type, facet_type = GMSH_QUADRATIC[dim]
     by_entity = _elements(gmsh, cell_type, dim, index)
+    assert sum(len(c) for c in by_entity.values()), "gmsh made no quadratic cells (see its log)"
     order = list(by_entity)
     cells = np.concatenate([by_entity[e] for e in order])[:, GMSH_TO_SKFEM[dim]]
     start = dict(zip(order, np.cumsum([0] + [len(by_entity[e]) for e in order])))
@@ -246,11 +247,20 @@ def _rigid_body_modes(points: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------- evaluation anywhere
 
 
-def _reference_coordinates(mapping, points: np.ndarray, cells: np.ndarray, iterations: int = 25) -> np.ndarray:
+def _straight_coordinates(mesh, points: np.ndarray, cells: np.ndarray) -> np.ndarray:
+    """Reference coordinates (dim, n, 1) of points (dim, n) in the straight-sided
+    simplices of the cells' vertices (reference vertex k + 1 at the unit vector e_k)."""
+    corners = mesh.p[:, mesh.t[:, cells]]  # (dim, dim + 1, n)
+    edges = np.moveaxis(corners[:, 1:] - corners[:, :1], 2, 0)  # (n, dim, dim), columns are edges
+    return np.linalg.solve(edges, (points - corners[:, 0]).T[:, :, None])[:, :, 0].T[:, :, None]
+
+
+def _reference_coordinates(mapping, points: np.ndarray, cells: np.ndarray, X: np.ndarray,
+                           iterations: int = 25) -> np.ndarray:
     """Reference coordinates (dim, n, 1) of points (dim, n) in the given (curved) cells,
-    by Newton on the isoparametric map, not clipped to the cell: outside points get
-    coordinates outside the reference simplex."""
-    X = np.full(points.shape + (1,), 0.25)
+    by Newton on the isoparametric map from X, not clipped to the cell: outside points
+    get coordinates outside the reference simplex."""
+    X = X.copy()
     active = np.arange(points.shape[1])
     for _ in range(iterations):
         sub = X[:, active]
@@ -285,7 +295,7 @@ def _beyond_boundary(mesh, cells: np.ndarray, X: np.ndarray) -> np.ndarray:
     return mesh.f2t[1, facet] == -1
 
 
-def locate(basis, points: np.ndarray, candidates: int = 12, inside: float = 1e-9, hair: float = 1e-2):
+def locate(basis, points: np.ndarray, candidates: int = 12, inside: float = 1e-9, hair: float = 0.1):
     """For points (n, dim): (cell, reference coordinates (dim, n, 1), outside measure).
     The cell contains the point; or, for a point a hair outside the curved mesh, is a
     cell that it is outside of across a boundary facet by less than ``hair`` (in
@@ -302,7 +312,10 @@ def locate(basis, points: np.ndarray, candidates: int = 12, inside: float = 1e-9
     for k in (candidates, 5 * candidates):
         near = tree.query(points[todo], k=k)[1]
         for j in range(k):
-            trial = _reference_coordinates(basis.mapping, points[todo].T, near[:, j])
+            trial = _straight_coordinates(mesh, points[todo].T, near[:, j])
+            close = _outside(trial) < 0.5  # Newton only where the straight cell is near the point
+            trial[:, close] = _reference_coordinates(basis.mapping, points[todo[close]].T, near[close, j],
+                                                     trial[:, close])
             measure = _outside(trial)
             better = measure < outside[todo]
             rows = todo[better]

@@ -12,7 +12,7 @@ from fenics_elasto.surface import read_landmarks, read_surface
 # Cheap sizes: the checks below hold at any size; the defaults are for estimates.
 LETTER = {"size": 0.32}
 INCLUSION = {"size": 0.4, "spacing": 0.02, "top": (0.3, 0.05, -0.5, -0.02)}
-PHANTOM = {"walls": 0.8, "prostate": 0.5, "far": 2.5, "spacing": 0.08}
+PHANTOM = {"walls": 0.7, "prostate": 0.45, "far": 2.5, "spacing": 0.08}  # (0.8, 0.5, 2.0): HXT fails
 
 
 @pytest.fixture(scope="session")
@@ -136,16 +136,17 @@ def test_letter_a_outline_converges():
 
 @pytest.mark.slow
 def test_letter_a_agrees_with_the_toolkit(truth_dir, tmp_path):
-    """Two independent codes on two different meshes: the toolkit's fine simulation
-    of the letter's outline lies on the scikit-fem target (to its own discretisation
-    error, ~1e-4), while nu 0.3 instead of 0.25 moves the outline by ~1e-2."""
+    """Two independent codes on two different meshes: the toolkit's simulation of the
+    letter's outline lies on the scikit-fem target to the toolkit's discretisation
+    error (uniform h = 0.15, stress-singular corners: ~4e-4 rms, as scikit-fem's own on
+    a uniform h = 0.16 mesh), while nu 0.3 instead of 0.25 moves it 10x farther."""
     from targets import fine_simulation
 
     target = read_surface(ind.letter_a(truth_dir, 0.25)["target"], 2)
     fine_simulation("letter-a", tmp_path, 0.15, ["materials.letter.nu=0.25"])
     toolkit = read_surface(tmp_path / "target" / "surface.vtp", 2)
     gap = np.linalg.norm(toolkit.points - target.closest(toolkit.points), axis=1)
-    assert np.sqrt(np.mean(gap**2)) < 3e-4 and gap.max() < 3e-3
+    assert np.sqrt(np.mean(gap**2)) < 6e-4 and gap.max() < 3e-3
     other = read_surface(ind.letter_a(truth_dir, 0.3)["target"], 2)
     moved = np.linalg.norm(toolkit.points - other.closest(toolkit.points), axis=1)
     assert np.sqrt(np.mean(moved**2)) > 10 * np.sqrt(np.mean(gap**2))
@@ -174,8 +175,9 @@ def test_inclusion_scene_and_targets_load(truth_dir):
 @pytest.mark.slow
 def test_phantom_files_motion_and_fiducials(truth_dir):
     """Coarse phantom: the targets load as triangle surfaces and landmarks; the walls
-    follow the prescribed motion (to the P2 interpolation error); that motion is not
-    affine; the fiducials sit inside the prostate and moved."""
+    follow the prescribed motion (to the P2 interpolation error), which is not affine;
+    the 10-node tets are read in the right node order; the fiducials sit inside the
+    prostate and moved."""
     files = ind.phantom(truth_dir, 50.0, **PHANTOM)
     organs = phantom_organs(0)
     surfaces = ind.phantom_surfaces(organs, PHANTOM["spacing"])
@@ -185,11 +187,16 @@ def test_phantom_files_motion_and_fiducials(truth_dir):
         source = surfaces[group][0]
         assert target.points.shape == source.shape
         moved = target.points - source
-        if group in motions:
-            assert np.abs(moved - motions[group](source.T).T).max() < 0.01  # 0.15 cm ripple at h = 0.8
-        affine, *_ = np.linalg.lstsq(np.c_[source, np.ones(len(source))], target.points, rcond=None)
-        misfit = target.points - np.c_[source, np.ones(len(source))] @ affine
-        assert np.sqrt(np.mean(np.sum(misfit**2, axis=1))) > 0.01  # no affine map explains it
+        if group in motions:  # the walls: moved as prescribed, and no affine map explains it
+            assert np.abs(moved - motions[group](source.T).T).max() < 0.01  # 0.15 cm ripple at h = 0.7
+            affine, *_ = np.linalg.lstsq(np.c_[source, np.ones(len(source))], target.points, rcond=None)
+            misfit = target.points - np.c_[source, np.ones(len(source))] @ affine
+            assert np.sqrt(np.mean(np.sum(misfit**2, axis=1))) > 0.03
+    mesh = ind.phantom_model(0, PHANTOM["walls"], PHANTOM["prostate"], PHANTOM["far"]).fe.mesh  # cached
+    chord = mesh.p[:, mesh.edges]  # the 10-node tet's edge nodes in scikit-fem's order: near their edges
+    gap = np.linalg.norm(mesh.doflocs[:, mesh.nvertices:] - chord.mean(axis=1), axis=0)
+    bend = gap / np.linalg.norm(chord[:, 0] - chord[:, 1], axis=0)  # (a swapped order: ~0.5 for most)
+    assert np.median(bend) < 0.05 and np.percentile(bend, 99) < 0.25  # a few: coarse cells on thin bones
     source, moved = read_landmarks(files["fiducials"], 3)
     prostate = organs["prostate"]
     level = np.sum(((source - prostate["center"]) / prostate["radii"]) ** 2, axis=1)
