@@ -295,7 +295,7 @@ def _beyond_boundary(mesh, cells: np.ndarray, X: np.ndarray) -> np.ndarray:
     return mesh.f2t[1, facet] == -1
 
 
-def locate(basis, points: np.ndarray, candidates: int = 12, inside: float = 1e-9, hair: float = 0.1):
+def locate(basis, points: np.ndarray, candidates: int = 12, inside: float = 1e-9, hair: float = 1e-2):
     """For points (n, dim): (cell, reference coordinates (dim, n, 1), outside measure).
     The cell contains the point; or, for a point a hair outside the curved mesh, is a
     cell that it is outside of across a boundary facet by less than ``hair`` (in
