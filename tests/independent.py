@@ -103,8 +103,7 @@ def quadratic_mesh(gmsh, dim: int) -> FEMesh:
     index = np.full(int(tags.max()) + 1, -1, np.int64)
     index[tags] = np.arange(len(tags))
     points = coords.reshape(-1, 3)[:, :dim]
-    cell_type, facet_type = GMSH_QUADRATIC[dim]
-    by_entity = _elements(gmsh, cell_type, dim, index)
+    by_entity = _elements(gmsh, GMSH_QUADRATIC[dim][0], dim, index)
     assert sum(len(c) for c in by_entity.values()), "gmsh made no quadratic cells (see its log)"
     order = list(by_entity)
     cells = np.concatenate([by_entity[e] for e in order])[:, GMSH_TO_SKFEM[dim]]
@@ -113,21 +112,27 @@ def quadratic_mesh(gmsh, dim: int) -> FEMesh:
                for name, ents in _groups(gmsh, dim).items()}
 
     mesh = (MeshTri2 if dim == 2 else MeshTet2)(points.T.copy(), cells.T.copy())
-    vertex_of = np.full(len(points), -1, np.int64)  # scikit-fem renumbers the vertices first
+    return FEMesh(mesh, regions, _facet_groups(gmsh, mesh, cells, index))
+
+
+def _facet_groups(gmsh, mesh, cells: np.ndarray, index: np.ndarray) -> dict:
+    """Facet group name -> scikit-fem facet indices, matched by their vertices."""
+    dim = mesh.dim()
+    vertex_of = np.full(len(index), -1, np.int64)  # scikit-fem numbers the vertices first, in sorted order
     used = np.unique(cells[:, :dim + 1])
     vertex_of[used] = np.arange(len(used))
     n = mesh.nvertices
     mesh_keys = _facet_keys(mesh.facets, n)
     sort = np.argsort(mesh_keys)
-    facet_rows = _elements(gmsh, facet_type, dim - 1, index)
+    facet_rows = _elements(gmsh, GMSH_QUADRATIC[dim][1], dim - 1, index)
     facets = {}
     for name, ents in _groups(gmsh, dim - 1).items():
         rows = np.concatenate([facet_rows[e][:, :dim] for e in ents])
         keys = _facet_keys(vertex_of[rows].T, n)
-        at = sort[np.searchsorted(mesh_keys, keys, sorter=sort)]
+        at = sort[np.minimum(np.searchsorted(mesh_keys, keys, sorter=sort), len(sort) - 1)]
         assert (mesh_keys[at] == keys).all(), f"facet group {name}: facets not in the mesh"
         facets[name] = at
-    return FEMesh(mesh, regions, facets)
+    return facets
 
 
 # --------------------------------------------------------------------------- the FE solve
@@ -181,7 +186,7 @@ class Elasticity:
         dofs, values = self.prescribed(motions)
         A, b, x, free = condense(self.stiffness(materials), np.zeros(self.basis.N), x=values, D=dofs)
         x = x.copy()
-        x[free] = _linear_solve(A, b, self.basis.doflocs[:, free], tol)
+        x[free] = _linear_solve(A, b, self.basis.doflocs[:, free], free % self.fe.mesh.dim(), tol)
         return x
 
 
@@ -216,25 +221,25 @@ def _check_orientation(basis) -> None:
     assert not mixed.any(), f"{mixed.sum()} curved cells fold over (det J changes sign)"
 
 
-def _linear_solve(A, b, points, tol: float) -> np.ndarray:
+def _linear_solve(A, b, points: np.ndarray, component: np.ndarray, tol: float) -> np.ndarray:
     """Direct (SuperLU) in 2D; in 3D, CG preconditioned by smoothed-aggregation AMG with
-    the rigid-body modes as near-null space (a direct solve of 3D P2 is slow here)."""
+    the rigid-body modes as near-null space (a direct solve of 3D P2 is slow here).
+    ``points``, ``component``: each unknown's location and displacement component."""
     if points.shape[0] == 2:
         return spla.spsolve(A.tocsc(), b)
     import pyamg
 
-    solver = pyamg.smoothed_aggregation_solver(A, B=_rigid_body_modes(points), coarse_solver="splu")
+    solver = pyamg.smoothed_aggregation_solver(A, B=_rigid_body_modes(points, component), coarse_solver="splu")
     residuals = []
     x = solver.solve(b, tol=tol, accel="cg", maxiter=500, residuals=residuals)
     assert residuals[-1] <= tol * 10 * residuals[0], f"AMG-CG stalled at relative residual {residuals[-1] / residuals[0]:.1e}"
     return x
 
 
-def _rigid_body_modes(points: np.ndarray) -> np.ndarray:
-    """(3n, 6) translations and rotations at interleaved (x, y, z) DOFs; ``points`` are
-    the DOF locations (each node three times, component by DOF order)."""
+def _rigid_body_modes(points: np.ndarray, component: np.ndarray) -> np.ndarray:
+    """(n, 6) translations and rotations of 3D space at n unknowns: their locations
+    (3, n) and displacement components (0, 1, 2)."""
     n = points.shape[1]
-    component = np.arange(n) % 3  # scikit-fem interleaves the components of a node
     x, y, z = points
     modes = np.zeros((n, 6))
     modes[np.arange(n), component] = 1.0
