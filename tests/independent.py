@@ -506,7 +506,7 @@ def letter_a(out, nu: float, top=(0.4, -0.8), E: float = 10.0, size: float = 0.1
 
     def make(folder):
         model, edges = letter_a_model(size)
-        u = model.solve({"letter": (E, nu)}, {"feet": _constant((0.0, 0.0)), "top": _constant(top)})
+        u = model.solve({"letter": (E, nu)}, {"feet": constant_motion((0.0, 0.0)), "top": constant_motion(top)})
         polylines = [sample_segment(a, b, spacing) for a, b in edges]
         moved = [p + evaluate(model.basis, u, p) for p in polylines]
         return {"target": write_polylines(folder / "target.vtp", moved)}
@@ -514,7 +514,8 @@ def letter_a(out, nu: float, top=(0.4, -0.8), E: float = 10.0, size: float = 0.1
     return cached(out, "letter-a", params, make)
 
 
-def _constant(value) -> Callable:
+def constant_motion(value) -> Callable:
+    """u(x) = value: a group moved rigidly (or clamped)."""
     return lambda x: np.asarray(value, float)[:, None] * np.ones(x.shape[1])
 
 
@@ -646,7 +647,7 @@ def inclusion(out, ratio: float, top=INCLUSION_TOP, center=(0.0, 0.0), radius: f
     def make(folder):
         model = inclusion_model(tuple(center), radius, size)
         materials = {"matrix": (E, nu), "inclusion": (ratio * E, nu)}
-        u = model.solve(materials, {"bottom": _constant((0.0, 0.0)), "top": inclusion_top_motion(top)})
+        u = model.solve(materials, {"bottom": constant_motion((0.0, 0.0)), "top": inclusion_top_motion(top)})
         w, h = BLOCK
         corners = np.array([[-w / 2, -h / 2], [w / 2, -h / 2], [w / 2, h / 2], [-w / 2, h / 2], [-w / 2, -h / 2]])
         curves = {"outline": np.concatenate([sample_segment(a, b, spacing)[:-1] for a, b in zip(corners, corners[1:])]
@@ -771,7 +772,7 @@ def phantom_motions(organs: dict, ripple: float = 0.15) -> dict:
         radial = (x - axis) * np.array([[1.0], [1.0], [0.0]])
         return 0.15 * radial + np.array([[0.0], [-0.1], [0.05]]) + _ripple(x - axis, ripple)
 
-    return {"bones": _constant((0.0, 0.0, 0.0)), "bladder": bladder_motion, "rectum": rectum_motion}
+    return {"bones": constant_motion((0.0, 0.0, 0.0)), "bladder": bladder_motion, "rectum": rectum_motion}
 
 
 # Fiducials: offsets in units of the prostate's radii, spread out, well inside (|q| < 0.7).

@@ -122,7 +122,8 @@ def test_letter_a_outline_converges():
         ind.letter_a_model.cache_clear()
         model, edges = ind.letter_a_model(size)
         points = np.concatenate([ind.sample_segment(a, b, 0.02) for a, b in edges])
-        u = model.solve({"letter": (10.0, nu)}, {"feet": ind._constant((0, 0)), "top": ind._constant((0.4, -0.8))})
+        motions = {"feet": ind.constant_motion((0, 0)), "top": ind.constant_motion((0.4, -0.8))}
+        u = model.solve({"letter": (10.0, nu)}, motions)
         return ind.evaluate(model.basis, u, points)
 
     def rms(d):
