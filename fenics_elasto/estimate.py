@@ -98,17 +98,20 @@ def check_overlap(problem: InverseProblem) -> float:
     return problem.misfit.cost(residual)
 
 
-def check_determined(problem: InverseProblem, basis, options: Options) -> str | None:
+def check_determined(problem: InverseProblem, basis, options: Options, inner: str) -> str | None:
     """Refuse a full force space that can fit the data for any material; None if fine.
 
-    Counting, generically: the loaded nodes' displacements are the controls; each
+    Only for the L-BFGS inner solvers: with Gauss-Newton the linearisation after the
+    scan tells (``Estimator.check_identifiable``), and counting is too strict where
+    elasticity smooths a few more boundary directions than constraints away. Counting,
+    generically: the loaded nodes' displacements are the controls; each
     matched surface point asks one (normal) constraint, each landmark gdim. A loaded
     node that is itself matched meets its own constraint, leaving gdim - 1 free
     directions; every other loaded node leaves gdim. When the free directions are at
     least the remaining constraints plus the materials, the target is fitted exactly
     whatever the materials are (walls sliding along their target, forces scaling).
     """
-    if basis is not None:
+    if basis is not None or inner == "gauss-newton":
         return None
     misfit, observation = problem.misfit, problem.observation
     surface = misfit.surface_rows()
@@ -142,6 +145,16 @@ def _nodes_in(problem, nodes, other) -> np.ndarray:
 # --------------------------------------------------------------------------- the estimate
 
 
+def choose_inner(problem: InverseProblem, options: Options, basis) -> str:
+    """Gauss-Newton with bases or a small full force space; L-BFGS otherwise ("auto")."""
+    inner = options.inner
+    if inner == "auto":
+        small = problem.force_dofs <= options.full_gn_limit
+        inner = "gauss-newton" if basis is not None or small else "lbfgs"
+    require(basis is None or inner == "gauss-newton", "reduced bases need optimizer.inner = 'gauss-newton'")
+    return inner
+
+
 def surface_matched_start(problem: InverseProblem) -> np.ndarray:
     """The loaded nodes' displacement that surface matching finds (flat): matched nodes
     moved onto their target surfaces (landmarks only: each takes its nearest landmark's
@@ -166,21 +179,13 @@ class Estimator:
         self.params = problem.params
         self.options = options
         self.basis = basis  # W (force_dofs x r) or None: the full space
-        self.inner_name = self._choose_inner()
+        self.inner_name = choose_inner(problem, options, basis)
         self.d0 = surface_matched_start(problem)
         surrogate = MaterialSurrogate(problem, basis) if basis is not None and options.surrogate else None
         self.profile = Profile(problem, self._inner(), basis, surrogate, same_within=1e-3 * options.outer_xtol)
         self.surrogate = SurrogateProfile(self.profile) if surrogate is not None else None
         self.outer_iterations = 0
         self.warnings: list[str] = []
-
-    def _choose_inner(self) -> str:
-        inner = self.options.inner
-        if inner == "auto":
-            small = self.problem.force_dofs <= self.options.full_gn_limit
-            inner = "gauss-newton" if self.basis is not None or small else "lbfgs"
-        require(self.basis is None or inner == "gauss-newton", "reduced bases need optimizer.inner = 'gauss-newton'")
-        return inner
 
     def _inner(self):
         o = self.options
@@ -227,12 +232,13 @@ class Estimator:
         """After the scan: a constant whose 95 % interval (at the best scan value) is wider
         than its bounds is not determined by the data -- end now, not after the whole run."""
         post = self.posterior()
-        undetermined = [] if post is None else post.undetermined(self.params.s_bounds())
+        undetermined = {} if post is None else post.undetermined(self.params.s_bounds())
         if not undetermined:
             return
-        message = (f"{self.problem.scene.path}: the data do not determine {', '.join(undetermined)}: its 95 % "
-                   f"interval at the best scan value is wider than its bounds; fix it, or add data that see it "
-                   f"(landmarks inside the body, more matched surfaces), or set optimizer.allow_undetermined = true")
+        why = "; ".join(f"{label}: {reason}" for label, reason in undetermined.items())
+        message = (f"{self.problem.scene.path}: the data do not determine {', '.join(undetermined)} (at the best scan "
+                   f"value, {why}); fix it, or add data that see it (reduced bases, landmarks inside the body, more "
+                   f"matched surfaces), or set optimizer.allow_undetermined = true")
         if not self.options.allow_undetermined:
             raise UserError(message)
         self.warnings.append("undetermined (allow_undetermined = true): " + message.split(": ", 1)[1].split("; fix")[0])
@@ -275,7 +281,7 @@ def estimate(problem: InverseProblem, options: Options | None = None, basis: np.
             "are identifiable (scaling K and F together leaves u unchanged): fix one region's E as the reference")
     options = options or Options.from_scene(scene)
     phi_undeformed = check_overlap(problem)
-    warnings = [w for w in [check_determined(problem, basis, options)] if w]
+    warnings = [w for w in [check_determined(problem, basis, options, choose_inner(problem, options, basis))] if w]
     estimator = Estimator(problem, options, basis)
     interrupted = False
     try:

@@ -29,6 +29,11 @@ import numpy as np
 
 from fenics_elasto.functional import Linearisation
 
+# Measured share of a constant's effect the controls cannot mimic: 0.58 (letter A nu),
+# 0.76 (a user's inclusion E, vertices only), 0.91 (phantom E, bases); 0.011 for the
+# phantom's E in the full force space, where every E fits the organ surfaces.
+SEPARABLE_MIN = 0.05
+
 
 @dataclass
 class Posterior:
@@ -39,6 +44,7 @@ class Posterior:
     noise_given: bool
     dof: float  # m - p_eff
     is_E: np.ndarray
+    separable: np.ndarray  # per constant: the share of its effect the controls cannot mimic (0: none)
 
     @property
     def std_s(self) -> np.ndarray:
@@ -62,6 +68,7 @@ class Posterior:
         """result.json's ``uncertainty``."""
         out = {label: {"std": float(sd), "ci95": [float(lo), float(hi)]}
                for label, sd, (lo, hi) in zip(self.labels, self.std(), self.interval())}
+        out["separable"] = {label: float(v) for label, v in zip(self.labels, self.separable)}
         out["noise_std"] = self.noise_std
         out["noise"] = "given" if self.noise_given else "estimated from the residual"
         out["dof"] = self.dof
@@ -69,10 +76,18 @@ class Posterior:
             out["correlation"] = self.correlation().tolist()
         return out
 
-    def undetermined(self, bounds_s: list) -> list[str]:
-        """The constants whose 95 % interval (in s) is wider than their bounds."""
-        return [label for label, sd, (lo, hi) in zip(self.labels, self.std_s, bounds_s)
-                if not np.isfinite(sd) or 2 * 1.959964 * sd > hi - lo]
+    def undetermined(self, bounds_s: list) -> dict[str, str]:
+        """The constants the data do not determine, and why: the boundary controls can
+        mimic nearly all of its effect on the data (``separable`` below SEPARABLE_MIN:
+        any value fits, noise or not), or its 95 % interval (in s) is wider than its
+        bounds (the noise hides it)."""
+        out = {}
+        for label, sd, (lo, hi), share in zip(self.labels, self.std_s, bounds_s, self.separable):
+            if share < SEPARABLE_MIN:
+                out[label] = f"the boundary forces can mimic {100 * (1 - share):.1f} % of its effect on the data"
+            elif not np.isfinite(sd) or 2 * 1.959964 * sd > hi - lo:
+                out[label] = "its 95 % interval is wider than its bounds"
+        return out
 
 
 def posterior_at(profile, result, noise: float | None = None) -> Posterior | None:
@@ -98,10 +113,12 @@ def laplace(lin: Linearisation, labels, s, is_E, noise: float | None = None) -> 
     noise_std = float(noise) if noise is not None else float(np.sqrt(np.sum(lin.residual**2) / dof))
     Hqq = lin.A_q.T @ lin.A_q + lin.prior * np.eye(p)
     coupling = lin.A_q.T @ lin.A_s
-    schur = lin.A_s.T @ lin.A_s - coupling.T @ np.linalg.lstsq(Hqq, coupling, rcond=None)[0]
+    own = lin.A_s.T @ lin.A_s
+    schur = own - coupling.T @ np.linalg.lstsq(Hqq, coupling, rcond=None)[0]
     covariance = noise_std**2 * _inverse(schur)
+    separable = np.diag(schur) / np.where(np.diag(own) > 0, np.diag(own), 1.0)
     return Posterior(list(labels), np.asarray(s, float), covariance, noise_std, noise is not None, float(dof),
-                     np.asarray(is_E, bool))
+                     np.asarray(is_E, bool), separable)
 
 
 def _inverse(S: np.ndarray) -> np.ndarray:

@@ -90,3 +90,16 @@ def test_full_force_space_on_surfaces_is_refused_before_any_solve(scenes, tmp_pa
     line = proc.stderr.strip().splitlines()[-1]
     assert line.startswith("error:") and "cannot determine prostate.E" in line and "--synthetic" in line, line
     assert "scan" not in proc.stdout  # refused before the first solve
+
+
+def test_forces_that_mimic_the_material_end_after_the_scan(tmp_path, capsys):
+    """Gauss-Newton in the full force space, only the loaded top matched: the top's own
+    forces fit it whatever E is. The linearisation after the scan says so."""
+    source = build_scene("inclusion", tmp_path / "source")
+    fine_simulation("inclusion", tmp_path / "fine", 0.5, ["materials.inclusion.E=40.0"])
+    assert main(["estimate", str(source), "--out", str(tmp_path / "out"), "--set", "boundary.matched=['top']",
+                 "--set", f"target.surfaces={{top='{tmp_path / 'fine' / 'target' / 'surface_outline.vtp'}'}}"]) == 2
+    captured = capsys.readouterr()
+    line = captured.err.strip().splitlines()[-1]
+    assert line.startswith("error:") and "do not determine inclusion.E" in line and "mimic" in line, line
+    assert captured.out.count("  scan ") == 6 and "outer" not in captured.out  # the scan, nothing after it

@@ -93,6 +93,8 @@ def test_undetermined_constant_is_flagged():
     A_q = rng.standard_normal((50, 4))
     lin = Linearisation(0.01 * rng.standard_normal(50), A_q, A_q @ rng.standard_normal((4, 1)), 0.0, 50)
     post = laplace(lin, ["tissue.nu"], [0.3], [False])
-    assert post.undetermined([(0.0, 0.499)]) == ["tissue.nu"]
+    assert "mimic 100.0 %" in post.undetermined([(0.0, 0.499)])["tissue.nu"]
     determined = Linearisation(lin.residual, A_q, rng.standard_normal((50, 1)), 0.0, 50)
-    assert laplace(determined, ["tissue.nu"], [0.3], [False]).undetermined([(0.0, 0.499)]) == []
+    assert laplace(determined, ["tissue.nu"], [0.3], [False]).undetermined([(0.0, 0.499)]) == {}
+    noisy = Linearisation(100 * lin.residual, A_q, 1e-3 * rng.standard_normal((50, 1)), 0.0, 50)
+    assert "wider than its bounds" in laplace(noisy, ["tissue.nu"], [0.3], [False]).undetermined([(0.0, 0.499)])["tissue.nu"]
