@@ -4,8 +4,10 @@
 
 A_m and B_m are assembled once (with the full sparsity pattern, via a DG0 indicator of
 region m) and without boundary conditions; K for any material values and any set of
-clamped DOFs is a linear combination plus ``zeroRowsColumns``. Factorizations (MUMPS
-through PETSc) are cached per (materials, clamped set) and counted.
+clamped DOFs is a linear combination plus ``zeroRowsColumns``. The solvers of K
+(solvers.py: MUMPS, or CG + AMG for big meshes, as the scene's ``[solver]`` table says)
+are cached per (materials, clamped set); a new material value refills a cached solver of
+the same clamped set in place, so the sparsity analysis is never paid twice for it.
 """
 
 from __future__ import annotations
@@ -24,6 +26,8 @@ import dolfinx.fem.petsc
 from dolfinx import fem
 
 from fenics_elasto.scene import Scene
+from fenics_elasto.solvers import (DirectSolver, IterativeSolver, LinearSolver, SolverSettings, SolverStats,
+                                   WarmStart, rigid_body_modes)
 
 
 # --------------------------------------------------------------------------- materials
@@ -122,9 +126,11 @@ class NodeSet:
 
 
 class ElasticModel:
-    """Function space, cached material matrices, K(theta), factorizations and solves."""
+    """Function space, cached material matrices, K(theta), its solvers and solves."""
 
-    def __init__(self, scene: Scene, solver: str = "lu", cache_size: int = 2):
+    def __init__(self, scene: Scene, solver: SolverSettings | None = None, cache_size: int = 2):
+        """``solver``: default from the scene's ``[solver]`` table; ``cache_size``: solvers
+        kept (two: alternating material values do not refactor)."""
         self.scene = scene
         mesh = scene.mesh
         self.comm = mesh.comm
@@ -133,10 +139,21 @@ class ElasticModel:
         self.bs = self.V.dofmap.index_map_bs
         self.n_owned_blocks = self.V.dofmap.index_map.size_local
         self.dof_coords = self.V.tabulate_dof_coordinates()[:, : self.gdim]
-        self.solver = solver
-        self.factorizations = 0
+        self.settings = solver or SolverSettings.from_config(scene.config.get("solver"))
+        self.stats = SolverStats(self.settings.method_for(self.num_dofs))
         self._cache: OrderedDict = OrderedDict()
         self._cache_size = cache_size
+        self._warm: dict = {}  # clamped set -> WarmStart (iterative)
+
+    @property
+    def method(self) -> str:
+        """"direct" or "iterative" (``[solver] method``, "auto" resolved by size)."""
+        return self.stats.method
+
+    @property
+    def factorizations(self) -> int:
+        """Numeric factorizations of K so far (0 with the iterative method)."""
+        return self.stats.factorizations
 
     # --- sizes and DOF sets
 
@@ -237,21 +254,65 @@ class ElasticModel:
         tmp.destroy()
         return np.array(products)
 
-    def factorize(self, c, clamped: np.ndarray) -> "Factorization":
-        """K = sum_j c_j M_j with the clamped DOFs eliminated, factorized; cached and counted."""
+    def constrained_stiffness(self, c, clamped: np.ndarray, out: PETSc.Mat | None = None) -> PETSc.Mat:
+        """K = sum_j c_j M_j with identity rows and columns on the clamped DOFs, into
+        ``out`` (same pattern: the values change, the nonzero structure never does)."""
+        if out is None:
+            K = self.terms[0].duplicate(copy=False)
+            K.setOption(PETSc.Mat.Option.KEEP_NONZERO_PATTERN, True)
+        else:
+            K = out
+            K.zeroEntries()
+        for cj, M in zip(c, self.terms):
+            K.axpy(cj, M, structure=PETSc.Mat.Structure.SAME_NONZERO_PATTERN)
+        start = self.V.dofmap.index_map.local_range[0] * self.bs
+        K.zeroRowsColumns((clamped + start).astype(PETSc.IntType), diag=1.0)
+        return K
+
+    def factorize(self, c, clamped: np.ndarray) -> LinearSolver:
+        """A ready solver of K(c) with the clamped DOFs eliminated (a MUMPS factorization,
+        or CG + AMG), cached per (c, clamped set).
+
+        On a miss with a full cache, the least recently used solver of the same clamped
+        set is refilled with the new values and refactored numerically only (its MUMPS
+        analysis or AMG interpolation kept); otherwise a new one is built.
+        """
         key = (tuple(np.round(np.asarray(c, float), 12)), clamped.tobytes())
         if key in self._cache:
             self._cache.move_to_end(key)
             return self._cache[key]
-        K = self.stiffness(c)
-        start = self.V.dofmap.index_map.local_range[0] * self.bs
-        K.zeroRowsColumns((clamped + start).astype(PETSc.IntType), diag=1.0)
-        factor = Factorization(K, clamped, self.solver)
-        self.factorizations += 1
-        self._cache[key] = factor
-        while len(self._cache) > self._cache_size:
-            self._cache.popitem(last=False)[1].destroy()
-        return factor
+        reuse = self._reusable(clamped) if len(self._cache) >= self._cache_size else None
+        if reuse is not None:
+            solver = self._cache.pop(reuse)
+            self.constrained_stiffness(c, clamped, out=solver.K)
+            solver.refresh()
+        else:
+            while len(self._cache) >= self._cache_size:
+                self._cache.popitem(last=False)[1].destroy()
+            solver = self._new_solver(self.constrained_stiffness(c, clamped), clamped)
+        self._cache[key] = solver
+        return solver
+
+    def _reusable(self, clamped: np.ndarray):
+        """The key of the least recently used cached solver of this clamped set, or None."""
+        return next((key for key in self._cache if key[1] == clamped.tobytes()), None)
+
+    def _new_solver(self, K: PETSc.Mat, clamped: np.ndarray) -> LinearSolver:
+        if self.method == "direct":
+            return DirectSolver(K, clamped, self.settings, self.stats)
+        warm = self._warm.setdefault(clamped.tobytes(), WarmStart(self.comm))
+        return IterativeSolver(K, clamped, self.settings, self.stats, self.rigid_modes, warm)
+
+    @cached_property
+    def rigid_modes(self) -> PETSc.NullSpace:
+        """Translations and rotations at the owned DOF nodes (the AMG near-nullspace)."""
+        return rigid_body_modes(self.dof_coords[: self.n_owned_blocks], self.comm)
+
+    def release(self) -> None:
+        """Free the cached solvers (their factors can be most of the memory)."""
+        while self._cache:
+            self._cache.popitem()[1].destroy()
+        self._warm.clear()
 
     # --- vectors and solves
 
@@ -327,34 +388,3 @@ class ElasticModel:
         ds = ufl.Measure("ds", domain=mesh, subdomain_data=tags)
         one = fem.Constant(mesh, 1.0)
         return self.comm.allreduce(fem.assemble_scalar(fem.form(one * ds(1))), op=MPI.SUM)
-
-
-class Factorization:
-    """A factorized K with identity rows on its clamped DOFs (MUMPS via PETSc)."""
-
-    def __init__(self, K: PETSc.Mat, clamped: np.ndarray, kind: str = "lu"):
-        self.K = K
-        self.clamped = clamped
-        self.ksp = PETSc.KSP().create(K.getComm())
-        self.ksp.setOperators(K)
-        self.ksp.setType("preonly")
-        pc = self.ksp.getPC()
-        pc.setType("cholesky" if kind == "cholesky" else "lu")
-        pc.setFactorSolverType("mumps")
-        if kind == "cholesky":
-            K.setOption(PETSc.Mat.Option.SYMMETRIC, True)
-        self.ksp.setUp()
-        self.solves = 0
-
-    def solve(self, b: PETSc.Vec, x: PETSc.Vec) -> None:
-        self.ksp.solve(b, x)
-        self.solves += 1
-
-    def solve_many(self, B: PETSc.Mat, X: PETSc.Mat) -> None:
-        """Dense block of right-hand sides through the one factorization (MatMatSolve)."""
-        self.ksp.getPC().getFactorMatrix().matSolve(B, X)
-        self.solves += B.getSize()[1]
-
-    def destroy(self) -> None:
-        self.ksp.destroy()
-        self.K.destroy()
