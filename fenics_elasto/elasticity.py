@@ -195,24 +195,29 @@ class ElasticModel:
         """M_j with K(theta) = sum_j c_j M_j: (A_m, B_m) per material, interleaved.
 
         A_m = 2 eps(u):eps(v) and B_m = div u div v over region m, assembled on first use
-        (a model that only numbers nodes -- landmarks, atlas order -- never pays for them)
-        with the full sparsity pattern, via a DG0 indicator of the region.
+        (a model that only numbers nodes -- landmarks, atlas order -- never pays for them).
+        Each is integrated over its region's cells only (the integrals cost the mesh
+        twice in all, not twice per material) into a matrix with the whole mesh's
+        sparsity pattern, so that any K is a same-pattern linear combination.
         """
         mesh, V = self.scene.mesh, self.V
         u, v = ufl.TrialFunction(V), ufl.TestFunction(V)
-        chi = fem.Function(fem.functionspace(mesh, ("DG", 0)))
-        shear = fem.form(2 * chi * ufl.inner(epsilon(u), epsilon(v)) * ufl.dx)
-        volumetric = fem.form(chi * ufl.div(u) * ufl.div(v) * ufl.dx)
-        cell_dofs = chi.function_space.dofmap.list[:, 0]
+        # Explicit zeros on the whole pattern (a one-point rule: only the pattern matters);
+        # PETSc would squeeze out entries that were preallocated but never set.
+        zero = fem.Constant(mesh, 0.0) * ufl.inner(u, v) * ufl.dx(metadata={"quadrature_degree": 0})
+        pattern = dolfinx.fem.petsc.assemble_matrix(fem.form(zero))
+        pattern.assemble()
         out = []
         for material in self.scene.materials:
-            chi.x.array[:] = 0.0
-            chi.x.array[cell_dofs[self.scene.cell_tags.find(material.tag)]] = 1.0
-            chi.x.scatter_forward()
-            for form in (shear, volumetric):
-                M = dolfinx.fem.petsc.assemble_matrix(form)
+            cells = np.unique(self.scene.cell_tags.find(material.tag)).astype(np.int32)
+            region = dolfinx.mesh.meshtags(mesh, mesh.topology.dim, cells, np.ones(len(cells), np.int32))
+            dx = ufl.Measure("dx", domain=mesh, subdomain_data=region)(1)
+            for integrand in (2 * ufl.inner(epsilon(u), epsilon(v)), ufl.div(u) * ufl.div(v)):
+                M = pattern.duplicate(copy=True)
+                dolfinx.fem.petsc.assemble_matrix(M, fem.form(integrand * dx))
                 M.assemble()
                 out.append(M)
+        pattern.destroy()
         return out
 
     def coefficients(self, E, nu) -> np.ndarray:

@@ -286,11 +286,7 @@ class DirectSolver(LinearSolver):
             if np.all(r <= scale):
                 break
             if step == REFINEMENTS:
-                worst = float(np.max(r / np.maximum(scale / self.settings.rtol, 1e-300)))
-                raise SolverError(
-                    f"the direct solve's relative residual stays at {worst:.2g} > rtol {self.settings.rtol:g} "
-                    f"after {REFINEMENTS} refinement steps: K is (nearly) singular -- clamp a group that stops "
-                    "every rigid motion -- or [solver] blr is too loose")
+                raise self._stalled(float(np.max(r / np.maximum(scale / self.settings.rtol, 1e-300))))
             D = R.duplicate()
             self._apply(R, D)
             X.axpy(1.0, D)
@@ -299,6 +295,15 @@ class DirectSolver(LinearSolver):
             R.destroy()
         R.destroy()
         check_finite(X, "the direct solution", self.comm)
+
+
+    def _stalled(self, residual: float) -> SolverError:
+        where = (f"the direct solve's relative residual stays at {residual:.2g} > rtol {self.settings.rtol:g} "
+                 f"after {REFINEMENTS} refinement steps")
+        if residual < 1e-11:
+            return SolverError(f"{where}: that rtol is below what double precision reaches here; raise [solver] rtol")
+        return SolverError(f"{where}: K is (nearly) singular -- clamp a group that stops every rigid motion -- "
+                           "or [solver] blr is too loose")
 
 
 def _residual(K: PETSc.Mat, B, X):
