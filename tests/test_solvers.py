@@ -2,6 +2,7 @@
 a fresh factorization, BLR refined to exact, warm starts that save iterations, and
 failures that end in one line instead of a silently wrong (or infinite) field."""
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -12,7 +13,7 @@ from conftest import run_cli, run_mpi_script
 from fenics_elasto.elasticity import ElasticModel
 from fenics_elasto.forward import BoundaryForward
 from fenics_elasto.scene import load_scene
-from fenics_elasto.simulate import material_values
+from fenics_elasto.simulate import material_values, simulate
 from fenics_elasto.solvers import DIRECT_LIMIT, SolverError, SolverSettings
 
 MPI_SCRIPT = Path(__file__).parent / "mpi" / "solvers.py"
@@ -142,6 +143,18 @@ def test_auto_switches_by_size():
     assert SolverSettings().method_for(DIRECT_LIMIT) == "direct"
     assert SolverSettings().method_for(DIRECT_LIMIT + 1) == "iterative"
     assert SolverSettings(method="direct").method_for(10 * DIRECT_LIMIT) == "direct"
+
+
+def test_cli_simulate_iterative(scenes, tmp_path):
+    proc = run_cli("simulate", scenes["cantilever"], "--out", tmp_path / "out", "--set", "solver.method='iterative'")
+    assert proc.returncode == 0, proc.stderr
+    result = json.loads((tmp_path / "out" / "result.json").read_text())
+    assert result["solver"]["method"] == "iterative" and result["solver"]["iterations"] > 0
+    assert result["factorizations"] == 0
+    scene = load_scene(scenes["cantilever"], command="simulate")
+    direct = simulate(scene, ElasticModel(scene, SolverSettings(method="direct")))
+    assert direct.result["solver"]["factorizations"] == 1
+    assert result["max_displacement"] == pytest.approx(direct.result["max_displacement"], rel=1e-7)
 
 
 # --------------------------------------------------------------------------- failures
