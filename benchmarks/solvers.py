@@ -32,7 +32,8 @@ from fenics_elasto.logs import quiet
 from fenics_elasto.meshing import build_scene
 from fenics_elasto.scene import load_scene
 from fenics_elasto.simulate import material_values
-from fenics_elasto.solvers import DirectSolver, IterativeSolver, SolverError, SolverSettings, SolverStats, WarmStart
+from fenics_elasto.solvers import (DirectSolver, IterativeSolver, SolverError, SolverSettings, SolverStats, WarmStart,
+                                   rigid_body_modes)
 
 EVENTS = {"lu": ("MatLUFactorSym", "MatLUFactorNum"), "cholesky": ("MatCholFctrSym", "MatCholFctrNum")}
 
@@ -51,6 +52,7 @@ class Case:
         self.clamped = self.model.clamped_dofs(self.scene.fixed)
         self.b = self.model.boundary_load({}, {"bladder": 1.0})
         self.b.array[self.clamped] = 0.0
+        self.modes = rigid_body_modes(self.model.dof_coords[: self.model.n_owned_blocks], self.model.comm)
 
     def K(self, c=None):
         return self.model.constrained_stiffness(self.c if c is None else c, self.clamped)
@@ -60,7 +62,7 @@ class Case:
 
     def iterative(self, **settings):
         return IterativeSolver(self.K(), self.clamped, SolverSettings(method="iterative", **settings),
-                               SolverStats("iterative"), self.model.rigid_modes, WarmStart(self.model.comm))
+                               SolverStats("iterative"), self.modes, WarmStart(self.model.comm))
 
     def solve(self, solver):
         x = self.b.duplicate()

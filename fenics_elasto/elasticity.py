@@ -12,7 +12,6 @@ the same clamped set in place, so the sparsity analysis is never paid twice for 
 
 from __future__ import annotations
 
-from collections import OrderedDict
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -26,8 +25,7 @@ import dolfinx.fem.petsc
 from dolfinx import fem
 
 from fenics_elasto.scene import Scene
-from fenics_elasto.solvers import (DirectSolver, IterativeSolver, LinearSolver, SolverSettings, SolverStats,
-                                   WarmStart, rigid_body_modes)
+from fenics_elasto.solvers import LinearSolver, SolverCache, SolverSettings, SolverStats, rigid_body_modes
 
 
 # --------------------------------------------------------------------------- materials
@@ -141,9 +139,7 @@ class ElasticModel:
         self.dof_coords = self.V.tabulate_dof_coordinates()[:, : self.gdim]
         self.settings = solver or SolverSettings.from_config(scene.config.get("solver"))
         self.stats = SolverStats(self.settings.method_for(self.num_dofs))
-        self._cache: OrderedDict = OrderedDict()
         self._cache_size = cache_size
-        self._warm: dict = {}  # clamped set -> WarmStart (iterative)
 
     @property
     def method(self) -> str:
@@ -276,48 +272,13 @@ class ElasticModel:
 
     def factorize(self, c, clamped: np.ndarray) -> LinearSolver:
         """A ready solver of K(c) with the clamped DOFs eliminated (a MUMPS factorization,
-        or CG + AMG), cached per (c, clamped set).
-
-        On a miss with a full cache, the least recently used solver of the same clamped
-        set is refilled with the new values and refactored numerically only (its MUMPS
-        analysis or AMG interpolation kept); otherwise a new one is built.
-        """
-        key = (tuple(np.round(np.asarray(c, float), 12)), clamped.tobytes())
-        if key in self._cache:
-            self._cache.move_to_end(key)
-            return self._cache[key]
-        reuse = self._reusable(clamped) if len(self._cache) >= self._cache_size else None
-        if reuse is not None:
-            solver = self._cache.pop(reuse)
-            self.constrained_stiffness(c, clamped, out=solver.K)
-            solver.refresh()
-        else:
-            while len(self._cache) >= self._cache_size:
-                self._cache.popitem(last=False)[1].destroy()
-            solver = self._new_solver(self.constrained_stiffness(c, clamped), clamped)
-        self._cache[key] = solver
-        return solver
-
-    def _reusable(self, clamped: np.ndarray):
-        """The key of the least recently used cached solver of this clamped set, or None."""
-        return next((key for key in self._cache if key[1] == clamped.tobytes()), None)
-
-    def _new_solver(self, K: PETSc.Mat, clamped: np.ndarray) -> LinearSolver:
-        if self.method == "direct":
-            return DirectSolver(K, clamped, self.settings, self.stats)
-        warm = self._warm.setdefault(clamped.tobytes(), WarmStart(self.comm))
-        return IterativeSolver(K, clamped, self.settings, self.stats, self.rigid_modes, warm)
+        or CG + AMG), cached per (c, clamped set) -- see solvers.SolverCache."""
+        return self.solvers.get(c, clamped)
 
     @cached_property
-    def rigid_modes(self) -> PETSc.NullSpace:
-        """Translations and rotations at the owned DOF nodes (the AMG near-nullspace)."""
-        return rigid_body_modes(self.dof_coords[: self.n_owned_blocks], self.comm)
-
-    def release(self) -> None:
-        """Free the cached solvers (their factors can be most of the memory)."""
-        while self._cache:
-            self._cache.popitem()[1].destroy()
-        self._warm.clear()
+    def solvers(self) -> SolverCache:
+        modes = lambda: rigid_body_modes(self.dof_coords[: self.n_owned_blocks], self.comm)  # noqa: E731
+        return SolverCache(self.settings, self.stats, self.constrained_stiffness, modes, self._cache_size)
 
     # --- vectors and solves
 

@@ -43,7 +43,9 @@ win over the defaults set here.
 
 from __future__ import annotations
 
+from collections import OrderedDict
 from dataclasses import asdict, dataclass
+from typing import Callable
 
 import numpy as np
 from mpi4py import MPI
@@ -379,6 +381,55 @@ class IterativeSolver(LinearSolver):
 def _reason_name(reason: int) -> str:
     names = {v: k for k, v in vars(PETSc.KSP.ConvergedReason).items() if isinstance(v, int)}
     return names.get(reason, str(reason))
+
+
+class SolverCache:
+    """Ready solvers of K(c) per (c, clamped set), the ``size`` most recently used.
+
+    Two by default: alternating material values (a line search, a finite difference)
+    do not refactor. On a miss with a full cache, the least recently used solver of the
+    same clamped set is refilled in place (``stiffness(c, clamped, out=K)``: same
+    pattern) and refreshed -- MUMPS keeps its analysis, GAMG its interpolation --
+    instead of being destroyed and rebuilt from scratch.
+    """
+
+    def __init__(self, settings: SolverSettings, stats: SolverStats, stiffness: Callable,
+                 near_nullspace: Callable, size: int = 2):
+        self.settings, self.stats, self.size = settings, stats, size
+        self.stiffness = stiffness  # (c, clamped, out=None) -> K with identity rows on clamped
+        self.near_nullspace = near_nullspace  # () -> PETSc.NullSpace, built on first need
+        self._modes = None
+        self._solvers: OrderedDict = OrderedDict()
+        self._warm: dict = {}  # clamped set -> WarmStart, shared by its iterative solvers
+
+    def get(self, c, clamped: np.ndarray) -> LinearSolver:
+        key = (tuple(np.round(np.asarray(c, float), 12)), clamped.tobytes())
+        if key in self._solvers:
+            self._solvers.move_to_end(key)
+            return self._solvers[key]
+        full = len(self._solvers) >= self.size
+        same = next((k for k in self._solvers if k[1] == key[1]), None) if full else None
+        if same is not None:
+            solver = self._solvers.pop(same)
+            self.stiffness(c, clamped, out=solver.K)
+            solver.refresh()
+        else:
+            while len(self._solvers) >= self.size:
+                self._solvers.popitem(last=False)[1].destroy()
+            solver = self._new(self.stiffness(c, clamped), clamped)
+        self._solvers[key] = solver
+        return solver
+
+    def _new(self, K: PETSc.Mat, clamped: np.ndarray) -> LinearSolver:
+        if self.stats.method == "direct":
+            return DirectSolver(K, clamped, self.settings, self.stats)
+        if self._modes is None:
+            self._modes = self.near_nullspace()
+        warm = self._warm.setdefault(clamped.tobytes(), WarmStart(K.getComm().tompi4py()))
+        return IterativeSolver(K, clamped, self.settings, self.stats, self._modes, warm)
+
+    def __iter__(self):
+        return iter(self._solvers.values())
 
 
 class WarmStart:

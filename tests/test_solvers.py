@@ -114,7 +114,7 @@ def test_blr_is_refined_to_the_tolerance(scenes):
     u = _solve_at(exact, scene, E, rhs)
     compressed = ElasticModel(scene, SolverSettings(method="direct", blr=1e-6, rtol=1e-10))
     u_blr = _solve_at(compressed, scene, E, rhs)
-    solver = next(iter(compressed._cache.values()))
+    solver = next(iter(compressed.solvers))
     assert solver.factor.getMumpsInfog(35) < solver.factor.getMumpsInfog(29)  # it did compress
     assert compressed.stats.iterations >= 1  # the compressed factor alone is not enough...
     assert relative(u_blr, u) < 1e-8  # ...the refined answer is
