@@ -10,6 +10,7 @@ import pytest
 from petsc4py import PETSc
 
 from conftest import run_cli, run_mpi_script
+from targets import letter_case
 from fenics_elasto.elasticity import ElasticModel
 from fenics_elasto.forward import BoundaryForward
 from fenics_elasto.scene import load_scene
@@ -155,6 +156,22 @@ def test_cli_simulate_iterative(scenes, tmp_path):
     direct = simulate(scene, ElasticModel(scene, SolverSettings(method="direct")))
     assert direct.result["solver"]["factorizations"] == 1
     assert result["max_displacement"] == pytest.approx(direct.result["max_displacement"], rel=1e-7)
+
+
+@pytest.mark.slow
+def test_estimate_iterative_equals_direct(tmp_path):
+    """The whole nested estimate (letter A, nu) through either solver: the same nu."""
+    source, target = letter_case(tmp_path, 0.25, 0.25)
+    nu = {}
+    for method in ("direct", "iterative"):
+        proc = run_cli("estimate", source, "--out", tmp_path / method, "--set", f"target.surface='{target}'",
+                       "--set", f"solver.method='{method}'")
+        assert proc.returncode == 0, proc.stderr[-2000:]
+        result = json.loads((tmp_path / method / "result.json").read_text())
+        assert (result["factorizations"] > 0) == (method == "direct")
+        nu[method] = result["materials"]["letter"]["nu"]
+    assert abs(nu["iterative"] - nu["direct"]) < 1e-6
+    assert abs(nu["direct"] - 0.25) < 0.01
 
 
 # --------------------------------------------------------------------------- failures
