@@ -106,7 +106,7 @@ class SolverStats:
     analyses: int = 0  # orderings + symbolic analyses (direct)
     setups: int = 0  # AMG hierarchies built or refreshed (iterative)
     solves: int = 0  # right-hand sides solved
-    iterations: int = 0  # CG iterations (iterative) or refinement steps (direct), all solves
+    iterations: int = 0  # CG iterations (iterative); refinement + GMRES steps (direct)
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -279,25 +279,58 @@ class DirectSolver(LinearSolver):
             self.factor.matSolve(B, X)
 
     def _refine(self, B, X) -> None:
-        """Iterative refinement on the true K until every column's residual is within rtol."""
+        """Iterative refinement on the true K, X += F^-1 (B - K X), while every open column's
+        residual at least halves per step; columns still above rtol then go through GMRES
+        preconditioned by the factors (loose BLR factors). With exact factors, a
+        refinement that stalls means a singular K."""
         scale = self.settings.rtol * check_finite(B, "the right-hand side", self.comm, _BAD_INPUT)
         self.stats.solves += _columns(B).shape[1]
+        last = None
         for step in range(REFINEMENTS + 1):
             R = _residual(self.K, B, X)
             r = check_finite(R, "the direct solution's residual", self.comm)
-            if np.all(r <= scale):
+            open_ = r > scale
+            slow = last is not None and np.any(r[open_] > 0.5 * last[open_])
+            if not open_.any() or slow or step == REFINEMENTS:
                 break
-            if step == REFINEMENTS:
-                raise self._stalled(float(np.max(r / np.maximum(scale / self.settings.rtol, 1e-300))))
             D = R.duplicate()
             self._apply(R, D)
             X.axpy(1.0, D)
-            D.destroy()
+            for M in (D, R):
+                M.destroy()
             self.stats.iterations += 1
-            R.destroy()
+            last = r
         R.destroy()
+        if open_.any():
+            relative = float(np.max(r / np.maximum(scale / self.settings.rtol, 1e-300)))
+            if self.settings.blr == 0:
+                raise self._stalled(relative)
+            self._gmres(B, X, np.flatnonzero(open_))
         check_finite(X, "the direct solution", self.comm)
 
+    def _gmres(self, B, X, columns) -> None:
+        """GMRES on K preconditioned by the (compressed) factors, from X, for these columns."""
+        ksp = PETSc.KSP().create(self.K.getComm())
+        ksp.setOperators(self.K)
+        ksp.setPC(self.ksp.getPC())  # the same factors, not a new factorization
+        ksp.setType("gmres")
+        ksp.setPCSide(PETSc.PC.Side.RIGHT)  # its residual norm is the true ||b - K x||
+        ksp.setTolerances(rtol=self.settings.rtol, max_it=200)
+        ksp.setInitialGuessNonzero(True)
+        try:
+            for i in columns:
+                b, x = (B, X) if isinstance(B, PETSc.Vec) else (B.getDenseColumnVec(i, "r"), X.getDenseColumnVec(i))
+                ksp.solve(b, x)
+                self.stats.iterations += ksp.getIterationNumber()
+                if not isinstance(B, PETSc.Vec):
+                    B.restoreDenseColumnVec(i, "r")
+                    X.restoreDenseColumnVec(i)
+                if ksp.getConvergedReason() < 0:
+                    raise SolverError(
+                        f"the direct solve with block low-rank factors stays above rtol {self.settings.rtol:g} "
+                        f"(GMRES: {_reason_name(ksp.getConvergedReason())}): lower [solver] blr, or set it to 0")
+        finally:
+            ksp.destroy()
 
     def _stalled(self, residual: float) -> SolverError:
         where = (f"the direct solve's relative residual stays at {residual:.2g} > rtol {self.settings.rtol:g} "

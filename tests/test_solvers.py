@@ -106,14 +106,14 @@ def test_cache_keeps_two_values_and_reuses_the_oldest(cantilever):
 
 @pytest.mark.slow
 def test_blr_is_refined_to_the_tolerance(scenes):
-    """P2 phantom (BLR compresses nothing below ~10k DOFs): factors compressed at 1e-6
-    solve to ~1e-3 alone; the refined answer equals the uncompressed one."""
+    """P2 phantom (BLR compresses nothing below ~10k DOFs): factors compressed at 1e-3
+    solve to ~1e-1 alone; refinement, then GMRES on them, reach the uncompressed answer."""
     scene = load_scene(scenes["prostate-phantom"])
     E = material_values(scene)[0]
     exact = ElasticModel(scene, SolverSettings(method="direct"))
     rhs = _load(exact)
     u = _solve_at(exact, scene, E, rhs)
-    compressed = ElasticModel(scene, SolverSettings(method="direct", blr=1e-6, rtol=1e-10))
+    compressed = ElasticModel(scene, SolverSettings(method="direct", blr=1e-3, rtol=1e-10))
     u_blr = _solve_at(compressed, scene, E, rhs)
     solver = next(iter(compressed.solvers))
     assert solver.factor.getMumpsInfog(35) < solver.factor.getMumpsInfog(29)  # it did compress
