@@ -7,12 +7,14 @@ Every K here is sum_j c_j M_j with identity rows and columns on the clamped DOFs
 * **direct** (MUMPS LU or Cholesky through PETSc). A solver object keeps its KSP and
   its matrix; new material values refill the matrix in place (same nonzero pattern),
   so PETSc refactors numerically only and MUMPS's ordering and symbolic analysis are
-  paid once per object. Optional block low-rank compression (``blr``: MUMPS ICNTL(35),
-  dropping tolerance CNTL(7)) makes factors smaller and cheaper on big meshes but
-  approximate; every solution is therefore refined against the true K (iterative
-  refinement, x += F^-1 (b - K x)) until ||b - K x|| <= rtol ||b||, so the answer is
-  exact to rtol with or without compression. The residual check costs one product
-  with K and also catches a factorization that "succeeded" on a singular K.
+  paid once per object (measured: ~6 % of a factorization here; the numeric phase is
+  the cost). Optional block low-rank compression (``blr``: MUMPS ICNTL(35), dropping
+  tolerance CNTL(7)) makes factors smaller (116k DOFs: -13 % entries at 1e-8, -49 % at
+  1e-4) but approximate; every solution is therefore refined against the true K
+  (x += F^-1 (b - K x) while that halves the residual, then GMRES preconditioned by
+  the same factors) until ||b - K x|| <= rtol ||b||, so the answer is exact to rtol
+  with or without compression. The residual check costs one product with K and also
+  catches a factorization that "succeeded" on a singular K.
 * **iterative**: CG preconditioned by PETSc's GAMG (smoothed aggregation) with the
   rigid-body near-nullspace (translations and rotations at the DOF coordinates:
   3 modes in 2D, 6 in 3D); a new material value keeps the hierarchy's interpolation
@@ -25,7 +27,8 @@ Every K here is sum_j c_j M_j with identity rows and columns on the clamped DOFs
 **Tolerance.** Solves stop at ||b - K x|| <= rtol ||b|| (default 1e-8). The misfit,
 its gradients (one adjoint solve) and the reduced responses are linear in the solved
 fields, so they inherit the fields' relative error, ~rtol times a modest factor (the
-fields' measured error at 1e-8 is ~1e-9-1e-7, see benchmarks/solvers.py). The optimiser
+fields' measured error at rtol 1e-8 is 1.5-2.6e-9 on the phantom at 32k and 116k DOFs,
+benchmarks/solvers.py; each decade of rtol costs ~3 CG iterations). The optimiser
 asks for far less: the outer loop stops when log E moves by less than 1e-3 and the
 inner one at a relative gradient of 1e-6, so 1e-8 keeps two to three digits of margin
 while a tighter rtol would only add CG iterations.
