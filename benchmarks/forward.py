@@ -3,8 +3,9 @@
     python benchmarks/forward.py [--sizes 1.6 1.3 1.0] [--repeat 3]
 
 Prints DOFs, the one-off assembly of the per-material matrices, a direct assembly of
-K, K formed as a linear combination, MUMPS LU and Cholesky factorizations, one
-back-solve, and a 100-column block solve through one factorization.
+K, K formed as a linear combination, MUMPS LU and Cholesky factorizations (analysis
+included), one back-solve (with its residual check), and a 100-column block solve through
+one factorization. benchmarks/solvers.py goes further: analysis reuse, BLR, CG + AMG.
 """
 
 import argparse
@@ -16,14 +17,14 @@ import numpy as np
 
 import fenics_elasto  # noqa: F401  (imports dolfinx_solver before petsc4py)
 import ufl
-from petsc4py import PETSc
 
 import dolfinx.fem.petsc
 from dolfinx import fem
-from fenics_elasto.elasticity import ElasticModel, Factorization, epsilon
+from fenics_elasto.elasticity import ElasticModel, epsilon
 from fenics_elasto.meshing import build_scene
 from fenics_elasto.scene import load_scene
 from fenics_elasto.simulate import material_values
+from fenics_elasto.solvers import DirectSolver, SolverSettings, SolverStats
 
 
 def best_of(work, repeat=3):
@@ -38,7 +39,7 @@ def best_of(work, repeat=3):
 def direct_assembly(model, E, nu):
     """K assembled from scratch with per-cell Lame coefficients (what caching avoids)."""
     scene = model.scene
-    mu, lam = model.lame_parameters(E, nu)
+    mu, lam = model.coefficients(E, nu).reshape(-1, 2).T
     Q = fem.functionspace(scene.mesh, ("DG", 0))
     mu_f, lam_f = fem.Function(Q), fem.Function(Q)
     for m, material in enumerate(scene.materials):
@@ -60,26 +61,30 @@ def measure(h, repeat):
         scene = load_scene(build_scene("prostate-phantom", Path(tmp), size=h))
         start = time.perf_counter()
         model = ElasticModel(scene)
-        model.material_matrices  # assembled on first use
+        model.terms  # assembled on first use
         setup = time.perf_counter() - start
     E, nu = material_values(scene)
+    c = model.coefficients(E, nu)
     clamped = model.clamped_dofs(scene.fixed)
     row = {"h": h, "dofs": model.num_dofs, "material matrices (once)": setup}
     row["assemble K"] = best_of(direct_assembly(model, E, nu), repeat)
-    row["K by lin. comb."] = best_of(lambda: model.stiffness(E, nu).destroy(), repeat)
-    K = model.stiffness(E, nu)
-    K.zeroRowsColumns(clamped.astype(PETSc.IntType), diag=1.0)
+    row["K by lin. comb."] = best_of(lambda: model.stiffness(c).destroy(), repeat)
+
+    def factorize(kind):
+        settings = SolverSettings(method="direct", factor=kind)
+        return DirectSolver(model.constrained_stiffness(c, clamped), clamped, settings, SolverStats("direct"))
+
     for kind in ("lu", "cholesky"):
-        row[f"{kind.upper()} factor"] = best_of(lambda: Factorization(K.copy(), clamped, kind).destroy(), repeat)
-    factor = Factorization(K, clamped, "lu")
-    b, x = K.createVecRight(), K.createVecRight()
+        row[f"{kind.upper()} factor"] = best_of(lambda: factorize(kind).destroy(), repeat)
+    factor = factorize("lu")
+    b, x = factor.K.createVecRight(), factor.K.createVecRight()
     b.setRandom()
+    b.array[clamped] = 0.0
     row["back-solve"] = best_of(lambda: factor.solve(b, x), repeat)
-    n = model.num_dofs
-    columns = np.random.default_rng(0).standard_normal((n, 100))  # PETSc borrows this memory
-    B = PETSc.Mat().createDense((n, 100), array=columns)
-    X = PETSc.Mat().createDense((n, 100))
-    X.setUp()
+    columns = np.random.default_rng(0).standard_normal((model.n_owned_blocks * model.bs, 100))
+    B, X = model.dense(100), model.dense(100)
+    B.getDenseArray()[:] = columns
+    B.getDenseArray()[clamped] = 0.0
     row["100 RHS block"] = best_of(lambda: factor.solve_many(B, X), repeat)
     row["ratio assemble/lin.comb."] = row["assemble K"] / row["K by lin. comb."]
     return row

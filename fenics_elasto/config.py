@@ -505,7 +505,9 @@ PROBLEM = Table({
     "reduction": Key(Table({"bases": Key(String("a bases file"), REQUIRED), "rank": Key(Integer(ge=1))})),
     "solver": Key(Table({
         "method": Key(Choice("auto", "direct", "iterative"), "auto"),
-        "rtol": Key(Number(gt=0, lt=1), 1e-8),
+        "rtol": Key(Number(gt=0, lt=1), 1e-8),  # every solve: ||b - K x|| <= rtol ||b||
+        "factor": Key(Choice("lu", "cholesky"), "lu"),  # direct only
+        "blr": Key(Number(ge=0, le=1e-2, noun="a block low-rank tolerance (0: off)"), 0.0),  # direct only
     }), {}),
 })
 

@@ -4,13 +4,14 @@
 
 A_m and B_m are assembled once (with the full sparsity pattern, via a DG0 indicator of
 region m) and without boundary conditions; K for any material values and any set of
-clamped DOFs is a linear combination plus ``zeroRowsColumns``. Factorizations (MUMPS
-through PETSc) are cached per (materials, clamped set) and counted.
+clamped DOFs is a linear combination plus ``zeroRowsColumns``. The solvers of K
+(solvers.py: MUMPS, or CG + AMG for big meshes, as the scene's ``[solver]`` table says)
+are cached per (materials, clamped set); a new material value refills a cached solver of
+the same clamped set in place, so the sparsity analysis is never paid twice for it.
 """
 
 from __future__ import annotations
 
-from collections import OrderedDict
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -24,6 +25,7 @@ import dolfinx.fem.petsc
 from dolfinx import fem
 
 from fenics_elasto.scene import Scene
+from fenics_elasto.solvers import LinearSolver, SolverCache, SolverSettings, SolverStats, rigid_body_modes
 
 
 # --------------------------------------------------------------------------- materials
@@ -122,9 +124,11 @@ class NodeSet:
 
 
 class ElasticModel:
-    """Function space, cached material matrices, K(theta), factorizations and solves."""
+    """Function space, cached material matrices, K(theta), its solvers and solves."""
 
-    def __init__(self, scene: Scene, solver: str = "lu", cache_size: int = 2):
+    def __init__(self, scene: Scene, solver: SolverSettings | None = None, cache_size: int = 2):
+        """``solver``: default from the scene's ``[solver]`` table; ``cache_size``: solvers
+        kept (two: alternating material values do not refactor)."""
         self.scene = scene
         mesh = scene.mesh
         self.comm = mesh.comm
@@ -133,10 +137,19 @@ class ElasticModel:
         self.bs = self.V.dofmap.index_map_bs
         self.n_owned_blocks = self.V.dofmap.index_map.size_local
         self.dof_coords = self.V.tabulate_dof_coordinates()[:, : self.gdim]
-        self.solver = solver
-        self.factorizations = 0
-        self._cache: OrderedDict = OrderedDict()
+        self.settings = solver or SolverSettings.from_config(scene.config.get("solver"))
+        self.stats = SolverStats(self.settings.method_for(self.num_dofs))
         self._cache_size = cache_size
+
+    @property
+    def method(self) -> str:
+        """"direct" or "iterative" (``[solver] method``, "auto" resolved by size)."""
+        return self.stats.method
+
+    @property
+    def factorizations(self) -> int:
+        """Numeric factorizations of K so far (0 with the iterative method)."""
+        return self.stats.factorizations
 
     # --- sizes and DOF sets
 
@@ -178,24 +191,29 @@ class ElasticModel:
         """M_j with K(theta) = sum_j c_j M_j: (A_m, B_m) per material, interleaved.
 
         A_m = 2 eps(u):eps(v) and B_m = div u div v over region m, assembled on first use
-        (a model that only numbers nodes -- landmarks, atlas order -- never pays for them)
-        with the full sparsity pattern, via a DG0 indicator of the region.
+        (a model that only numbers nodes -- landmarks, atlas order -- never pays for them).
+        Each is integrated over its region's cells only (the integrals cost the mesh
+        twice in all, not twice per material) into a matrix with the whole mesh's
+        sparsity pattern, so that any K is a same-pattern linear combination.
         """
         mesh, V = self.scene.mesh, self.V
         u, v = ufl.TrialFunction(V), ufl.TestFunction(V)
-        chi = fem.Function(fem.functionspace(mesh, ("DG", 0)))
-        shear = fem.form(2 * chi * ufl.inner(epsilon(u), epsilon(v)) * ufl.dx)
-        volumetric = fem.form(chi * ufl.div(u) * ufl.div(v) * ufl.dx)
-        cell_dofs = chi.function_space.dofmap.list[:, 0]
+        # Explicit zeros on the whole pattern (a one-point rule: only the pattern matters);
+        # PETSc would squeeze out entries that were preallocated but never set.
+        zero = fem.Constant(mesh, 0.0) * ufl.inner(u, v) * ufl.dx(metadata={"quadrature_degree": 0})
+        pattern = dolfinx.fem.petsc.assemble_matrix(fem.form(zero))
+        pattern.assemble()
         out = []
         for material in self.scene.materials:
-            chi.x.array[:] = 0.0
-            chi.x.array[cell_dofs[self.scene.cell_tags.find(material.tag)]] = 1.0
-            chi.x.scatter_forward()
-            for form in (shear, volumetric):
-                M = dolfinx.fem.petsc.assemble_matrix(form)
+            cells = np.unique(self.scene.cell_tags.find(material.tag)).astype(np.int32)
+            region = dolfinx.mesh.meshtags(mesh, mesh.topology.dim, cells, np.ones(len(cells), np.int32))
+            dx = ufl.Measure("dx", domain=mesh, subdomain_data=region)(1)
+            for integrand in (2 * ufl.inner(epsilon(u), epsilon(v)), ufl.div(u) * ufl.div(v)):
+                M = pattern.duplicate(copy=True)
+                dolfinx.fem.petsc.assemble_matrix(M, fem.form(integrand * dx))
                 M.assemble()
                 out.append(M)
+        pattern.destroy()
         return out
 
     def coefficients(self, E, nu) -> np.ndarray:
@@ -237,21 +255,30 @@ class ElasticModel:
         tmp.destroy()
         return np.array(products)
 
-    def factorize(self, c, clamped: np.ndarray) -> "Factorization":
-        """K = sum_j c_j M_j with the clamped DOFs eliminated, factorized; cached and counted."""
-        key = (tuple(np.round(np.asarray(c, float), 12)), clamped.tobytes())
-        if key in self._cache:
-            self._cache.move_to_end(key)
-            return self._cache[key]
-        K = self.stiffness(c)
+    def constrained_stiffness(self, c, clamped: np.ndarray, out: PETSc.Mat | None = None) -> PETSc.Mat:
+        """K = sum_j c_j M_j with identity rows and columns on the clamped DOFs, into
+        ``out`` (same pattern: the values change, the nonzero structure never does)."""
+        if out is None:
+            K = self.terms[0].duplicate(copy=False)
+            K.setOption(PETSc.Mat.Option.KEEP_NONZERO_PATTERN, True)
+        else:
+            K = out
+            K.zeroEntries()
+        for cj, M in zip(c, self.terms):
+            K.axpy(cj, M, structure=PETSc.Mat.Structure.SAME_NONZERO_PATTERN)
         start = self.V.dofmap.index_map.local_range[0] * self.bs
         K.zeroRowsColumns((clamped + start).astype(PETSc.IntType), diag=1.0)
-        factor = Factorization(K, clamped, self.solver)
-        self.factorizations += 1
-        self._cache[key] = factor
-        while len(self._cache) > self._cache_size:
-            self._cache.popitem(last=False)[1].destroy()
-        return factor
+        return K
+
+    def factorize(self, c, clamped: np.ndarray) -> LinearSolver:
+        """A ready solver of K(c) with the clamped DOFs eliminated (a MUMPS factorization,
+        or CG + AMG), cached per (c, clamped set) -- see solvers.SolverCache."""
+        return self.solvers.get(c, clamped)
+
+    @cached_property
+    def solvers(self) -> SolverCache:
+        modes = lambda: rigid_body_modes(self.dof_coords[: self.n_owned_blocks], self.comm)  # noqa: E731
+        return SolverCache(self.settings, self.stats, self.constrained_stiffness, modes, self._cache_size)
 
     # --- vectors and solves
 
@@ -327,34 +354,3 @@ class ElasticModel:
         ds = ufl.Measure("ds", domain=mesh, subdomain_data=tags)
         one = fem.Constant(mesh, 1.0)
         return self.comm.allreduce(fem.assemble_scalar(fem.form(one * ds(1))), op=MPI.SUM)
-
-
-class Factorization:
-    """A factorized K with identity rows on its clamped DOFs (MUMPS via PETSc)."""
-
-    def __init__(self, K: PETSc.Mat, clamped: np.ndarray, kind: str = "lu"):
-        self.K = K
-        self.clamped = clamped
-        self.ksp = PETSc.KSP().create(K.getComm())
-        self.ksp.setOperators(K)
-        self.ksp.setType("preonly")
-        pc = self.ksp.getPC()
-        pc.setType("cholesky" if kind == "cholesky" else "lu")
-        pc.setFactorSolverType("mumps")
-        if kind == "cholesky":
-            K.setOption(PETSc.Mat.Option.SYMMETRIC, True)
-        self.ksp.setUp()
-        self.solves = 0
-
-    def solve(self, b: PETSc.Vec, x: PETSc.Vec) -> None:
-        self.ksp.solve(b, x)
-        self.solves += 1
-
-    def solve_many(self, B: PETSc.Mat, X: PETSc.Mat) -> None:
-        """Dense block of right-hand sides through the one factorization (MatMatSolve)."""
-        self.ksp.getPC().getFactorMatrix().matSolve(B, X)
-        self.solves += B.getSize()[1]
-
-    def destroy(self) -> None:
-        self.ksp.destroy()
-        self.K.destroy()

@@ -73,6 +73,7 @@ def simulate(scene: Scene, model: ElasticModel | None = None) -> Simulation:
         "materials": {m.name: {"E": m.E.value, "nu": m.nu.value} for m in scene.materials},
         "max_displacement": scene.comm.allreduce(float(magnitude.max(initial=0.0)), op=MPI.MAX),
         "factorizations": model.factorizations,
+        "solver": model.stats.as_dict(),
         "dofs": model.num_dofs,
         "degree": scene.degree,
         "wall_time_s": round(time.perf_counter() - start, 3),

@@ -202,6 +202,8 @@ BAD_PROBLEMS = {
                              "problem.toml: optimizer.inner:", ['reduced bases need "gauss-newton"']),
     "solver method": ({"solver": {"method": "lu"}}, (), "estimate", "problem.toml: solver.method:", ['"direct"', 'got "lu"']),
     "solver rtol 0": ({"solver": {"rtol": 0}}, (), "estimate", "problem.toml: solver.rtol:", ["in (0, 1), got 0"]),
+    "solver factor": ({"solver": {"factor": "ldl"}}, (), "estimate", "problem.toml: solver.factor:", ['"cholesky"', 'got "ldl"']),
+    "solver blr": ({"solver": {"blr": 0.1}}, (), "estimate", "problem.toml: solver.blr:", ["block low-rank", "got 0.1"]),
     "solver typo": ({"solvr": {}}, (), "estimate", "problem.toml: [solvr]:", ["did you mean [solver]?"]),
     "one line for a key with a newline": ({"materials": {"letter": {"n\nu": 0.3}}}, (), "estimate",
                                           'problem.toml: materials.letter."n\\nu":', ["unknown key"]),
@@ -255,7 +257,7 @@ def test_defaults_filled():
                       "inner_tol": 1e-6, "full_gn_limit": 1500, "anchor": 1e-4, "surrogate": True,
                       "allow_undetermined": False},
         "reduction": None,
-        "solver": {"method": "auto", "rtol": 1e-8},
+        "solver": {"method": "auto", "rtol": 1e-8, "factor": "lu", "blr": 0.0},
     }
     assert isinstance(config["materials"]["a"]["E"]["value"], float)
 

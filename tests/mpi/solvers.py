@@ -1,0 +1,29 @@
+"""Run under mpiexec: a forward solve and a block response with the given [solver]
+method (P1 phantom); saves both at the prostate surface's nodes (neither clamped nor
+loaded), in canonical node order: the same under any number of ranks."""
+
+import sys
+
+import numpy as np
+
+import fenics_elasto  # noqa: F401
+from fenics_elasto.elasticity import ElasticModel
+from fenics_elasto.forward import BoundaryForward
+from fenics_elasto.scene import load_scene
+from fenics_elasto.solvers import SolverSettings
+
+problem, method, out = sys.argv[1], sys.argv[2], sys.argv[3]
+scene = load_scene(problem, ["degree=1"])
+forward = BoundaryForward(scene, ElasticModel(scene, SolverSettings(method=method)))
+rng = np.random.default_rng(1)
+theta = np.array([40.0])
+forces = rng.standard_normal(forward.force_dofs)
+basis = rng.standard_normal((forward.force_dofs, 3))
+u = forward.from_forces(theta, forces)
+X = forward.response_block(theta, basis)
+nodes = forward.model.node_set(["prostate_surface"])
+rows = nodes.dofs(forward.model.bs).ravel()
+block = nodes.gather(X[rows].reshape(len(nodes), -1))
+field = nodes.gather(u.x.array.reshape(-1, forward.model.bs)[nodes.blocks])
+if scene.comm.rank == 0:
+    np.savez(out, u=field, X=block, ranks=scene.comm.size, method=forward.model.method)

@@ -1,0 +1,248 @@
+"""Linear solvers (solvers.py): iterative = direct to the tolerance, analysis reuse =
+a fresh factorization, BLR refined to exact, warm starts that save iterations, and
+failures that end in one line instead of a silently wrong (or infinite) field."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from petsc4py import PETSc
+
+from conftest import run_cli, run_mpi_script
+from targets import letter_case
+from fenics_elasto.elasticity import ElasticModel
+from fenics_elasto.forward import BoundaryForward
+from fenics_elasto.scene import load_scene
+from fenics_elasto.simulate import material_values, simulate
+from fenics_elasto.solvers import DIRECT_LIMIT, SolverError, SolverSettings
+
+MPI_SCRIPT = Path(__file__).parent / "mpi" / "solvers.py"
+
+
+@pytest.fixture(scope="module")
+def phantom_p1(scenes):
+    """The 3D phantom at P1 (~5k DOFs): quick, and every solver path is the same as at P2."""
+    return load_scene(scenes["prostate-phantom"], ["degree=1"])
+
+
+@pytest.fixture(scope="module")
+def cantilever(scenes):
+    return load_scene(scenes["cantilever"])
+
+
+def relative(a, b) -> float:
+    return float(np.linalg.norm(a - b) / np.linalg.norm(b))
+
+
+def forward_and_block(scene, settings: SolverSettings, columns: int = 3):
+    """A forward solve from random forces and a block response of random boundary modes
+    (its free rows)."""
+    forward = BoundaryForward(scene, ElasticModel(scene, settings))
+    rng = np.random.default_rng(1)
+    theta = np.array([40.0])
+    u = forward.from_forces(theta, rng.standard_normal(forward.force_dofs)).x.array.copy()
+    X = forward.response_block(theta, rng.standard_normal((forward.force_dofs, columns)))
+    free = np.ones(len(X), bool)
+    free[forward.clamped_boundary] = False  # the clamped rows are the modes themselves
+    return u, X[free], forward.model
+
+
+def test_iterative_equals_direct_forward_and_block(phantom_p1):
+    u_d, X_d, direct = forward_and_block(phantom_p1, SolverSettings(method="direct"))
+    u_i, X_i, iterative = forward_and_block(phantom_p1, SolverSettings(method="iterative", rtol=1e-8))
+    assert direct.method == "direct" and iterative.method == "iterative"
+    assert iterative.factorizations == 0 and iterative.stats.setups == 2  # two clamped sets
+    assert iterative.stats.iterations > 0 and direct.factorizations == 2
+    assert relative(u_i, u_d) < 1e-6
+    assert relative(X_i, X_d) < 1e-6
+
+
+@pytest.mark.slow
+def test_iterative_equals_direct_p2(scenes):
+    """The 32k-DOF P2 phantom (what `auto` gives a real scene)."""
+    scene = load_scene(scenes["prostate-phantom"])
+    u_d, X_d, _ = forward_and_block(scene, SolverSettings(method="direct"), columns=2)
+    u_i, X_i, _ = forward_and_block(scene, SolverSettings(method="iterative"), columns=2)
+    assert relative(u_i, u_d) < 1e-6
+    assert relative(X_i, X_d) < 1e-6
+
+
+def _solve_at(model, scene, E, rhs):
+    clamped = model.clamped_dofs(scene.fixed)
+    _, nu = material_values(scene)
+    return model.solve(model.coefficients(E, nu), clamped, rhs.x.petsc_vec).x.array.copy()
+
+
+def _load(model, seed=0):
+    rhs = model.function("f")
+    rhs.x.array[:] = np.random.default_rng(seed).standard_normal(len(rhs.x.array))
+    return rhs
+
+
+@pytest.mark.parametrize("factor", ["lu", "cholesky"])
+def test_analysis_reuse_equals_fresh_factorization(cantilever, factor):
+    settings = SolverSettings(method="direct", factor=factor)
+    reused = ElasticModel(cantilever, settings, cache_size=1)
+    rhs = _load(reused)
+    _solve_at(reused, cantilever, np.array([500.0]), rhs)
+    u = _solve_at(reused, cantilever, np.array([2000.0]), rhs)  # refilled K, numeric refactor only
+    assert reused.stats.analyses == 1 and reused.factorizations == 2
+    fresh = ElasticModel(cantilever, settings)
+    assert relative(u, _solve_at(fresh, cantilever, np.array([2000.0]), rhs)) < 1e-12
+    # the same answer as the stiffer material by scaling: u(E) = u(1) / E
+    assert relative(2000.0 * u, 500.0 * _solve_at(reused, cantilever, np.array([500.0]), rhs)) < 1e-10
+
+
+def test_cache_keeps_two_values_and_reuses_the_oldest(cantilever):
+    model = ElasticModel(cantilever, SolverSettings(method="direct"))
+    rhs = _load(model)
+    for E in (500.0, 1000.0, 500.0, 1000.0):  # alternating: no refactorization
+        _solve_at(model, cantilever, np.array([E]), rhs)
+    assert model.factorizations == 2 and model.stats.analyses == 2
+    _solve_at(model, cantilever, np.array([3000.0]), rhs)  # refills the least recently used
+    assert model.factorizations == 3 and model.stats.analyses == 2
+
+
+@pytest.mark.slow
+def test_blr_is_refined_to_the_tolerance(scenes):
+    """P2 phantom (BLR compresses nothing below ~10k DOFs): factors compressed at 1e-3
+    solve to ~1e-1 alone; refinement, then GMRES on them, reach the uncompressed answer."""
+    scene = load_scene(scenes["prostate-phantom"])
+    E = material_values(scene)[0]
+    exact = ElasticModel(scene, SolverSettings(method="direct"))
+    rhs = _load(exact)
+    u = _solve_at(exact, scene, E, rhs)
+    compressed = ElasticModel(scene, SolverSettings(method="direct", blr=1e-3, rtol=1e-10))
+    u_blr = _solve_at(compressed, scene, E, rhs)
+    solver = next(iter(compressed.solvers))
+    assert solver.factor.getMumpsInfog(35) < solver.factor.getMumpsInfog(29)  # it did compress
+    assert compressed.stats.iterations >= 1  # the compressed factor alone is not enough...
+    assert relative(u_blr, u) < 1e-8  # ...the refined answer is
+
+
+def test_warm_start_saves_iterations(phantom_p1):
+    """CG starts from the Galerkin projection onto the last solutions (a pressure load)."""
+    model = ElasticModel(phantom_p1, SolverSettings(method="iterative"))
+    clamped = model.clamped_dofs(phantom_p1.fixed)
+    E, nu = material_values(phantom_p1)
+    load = model.boundary_load({}, {"bladder": 1.0})
+    model.solve(model.coefficients(E, nu), clamped, load)
+    cold = model.stats.iterations
+    model.solve(model.coefficients(2 * E, nu), clamped, load)  # every E doubled: u / 2, in the span
+    assert model.stats.iterations == cold
+    stiffer = E * np.where([m.name == "prostate" for m in phantom_p1.materials], 1.01, 1.0)
+    u = model.solve(model.coefficients(stiffer, nu), clamped, load).x.array  # 1 % off the last one
+    warm = model.stats.iterations - cold
+    assert 0 < warm <= 0.75 * cold
+    fresh = ElasticModel(phantom_p1, SolverSettings(method="iterative"))
+    assert relative(u, fresh.solve(fresh.coefficients(stiffer, nu), clamped, load).x.array) < 1e-6
+    assert fresh.stats.iterations >= cold - 1  # the same kind of system from scratch
+
+
+def test_auto_switches_by_size():
+    assert SolverSettings().method_for(DIRECT_LIMIT) == "direct"
+    assert SolverSettings().method_for(DIRECT_LIMIT + 1) == "iterative"
+    assert SolverSettings(method="direct").method_for(10 * DIRECT_LIMIT) == "direct"
+
+
+def test_cli_simulate_iterative(scenes, tmp_path):
+    proc = run_cli("simulate", scenes["cantilever"], "--out", tmp_path / "out", "--set", "solver.method='iterative'")
+    assert proc.returncode == 0, proc.stderr
+    result = json.loads((tmp_path / "out" / "result.json").read_text())
+    assert result["solver"]["method"] == "iterative" and result["solver"]["iterations"] > 0
+    assert result["factorizations"] == 0
+    scene = load_scene(scenes["cantilever"], command="simulate")
+    direct = simulate(scene, ElasticModel(scene, SolverSettings(method="direct")))
+    assert direct.result["solver"]["factorizations"] == 1
+    assert result["max_displacement"] == pytest.approx(direct.result["max_displacement"], rel=1e-7)
+
+
+@pytest.mark.slow
+def test_estimate_iterative_equals_direct(tmp_path):
+    """The whole nested estimate (letter A, nu) through either solver: the same nu."""
+    source, target = letter_case(tmp_path, 0.25, 0.25)
+    nu = {}
+    for method in ("direct", "iterative"):
+        proc = run_cli("estimate", source, "--out", tmp_path / method, "--set", f"target.surface='{target}'",
+                       "--set", f"solver.method='{method}'")
+        assert proc.returncode == 0, proc.stderr[-2000:]
+        result = json.loads((tmp_path / method / "result.json").read_text())
+        assert (result["factorizations"] > 0) == (method == "direct")
+        nu[method] = result["materials"]["letter"]["nu"]
+    assert abs(nu["iterative"] - nu["direct"]) < 1e-6
+    assert abs(nu["direct"] - 0.25) < 0.01
+
+
+# --------------------------------------------------------------------------- failures
+
+
+def test_singular_stiffness_is_refused(cantilever):
+    """Nothing clamped: MUMPS 'succeeds' on the singular K; the residual check does not."""
+    model = ElasticModel(cantilever, SolverSettings(method="direct"))
+    rhs = _load(model)
+    _, nu = material_values(cantilever)
+    with pytest.raises(SolverError, match="singular"):
+        model.solve(model.coefficients([1000.0], nu), np.zeros(0, np.int32), rhs.x.petsc_vec)
+
+
+def test_nan_load_is_refused(cantilever):
+    for method in ("direct", "iterative"):
+        model = ElasticModel(cantilever, SolverSettings(method=method))
+        rhs = _load(model)
+        rhs.x.array[np.setdiff1d(np.arange(10), model.clamped_dofs(cantilever.fixed))[0]] = np.nan
+        with pytest.raises(SolverError, match="right-hand side is not finite"):
+            _solve_at(model, cantilever, np.array([1000.0]), rhs)
+
+
+@pytest.fixture
+def petsc_option():
+    """Set a PETSc option for one test (as PETSC_OPTIONS would), then remove it."""
+    set_here = []
+
+    def put(name, value):
+        PETSc.Options()[name] = value
+        set_here.append(name)
+
+    yield put
+    for name in set_here:
+        PETSc.Options().delValue(name)
+
+
+def test_mumps_failure_is_an_error(cantilever, petsc_option):
+    petsc_option("elasto_mat_mumps_icntl_23", 1)  # MUMPS may use 1 MB: it fails with INFOG(1) = -19
+    model = ElasticModel(cantilever, SolverSettings(method="direct"))
+    with pytest.raises(SolverError, match=r"INFOG\(1\) = -19.*ICNTL\(23\)"):
+        _solve_at(model, cantilever, np.array([1000.0]), _load(model))
+
+
+def test_cg_that_does_not_converge_is_an_error(cantilever, petsc_option):
+    petsc_option("elasto_ksp_max_it", 2)
+    model = ElasticModel(cantilever, SolverSettings(method="iterative"))
+    with pytest.raises(SolverError, match="CG \\+ AMG stopped after 2 iterations.*DIVERGED_MAX_IT"):
+        _solve_at(model, cantilever, np.array([1000.0]), _load(model))
+
+
+def test_cli_failed_factorization_is_one_line_and_exit_2(scenes, tmp_path, monkeypatch):
+    monkeypatch.setenv("PETSC_OPTIONS", "-elasto_mat_mumps_icntl_23 1")
+    proc = run_cli("simulate", scenes["cantilever"], "--out", tmp_path / "out", "--set", "solver.method='direct'")
+    assert proc.returncode == 2, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: MUMPS failed factorizing K"), proc.stderr
+    assert "Traceback" not in proc.stderr and not (tmp_path / "out" / "result.json").exists()
+
+
+# --------------------------------------------------------------------------- MPI
+
+
+@pytest.mark.slow
+def test_two_ranks_equal_serial(scenes, tmp_path):
+    """Iterative on 2 ranks = direct serially (forward solve and block, canonical order)."""
+    problem = scenes["prostate-phantom"]
+    serial, parallel = tmp_path / "serial.npz", tmp_path / "parallel.npz"
+    run_mpi_script(MPI_SCRIPT, 1, problem, "direct", serial)
+    run_mpi_script(MPI_SCRIPT, 2, problem, "iterative", parallel)
+    a, b = np.load(serial), np.load(parallel)
+    assert int(b["ranks"]) == 2 and str(b["method"]) == "iterative"
+    assert relative(b["u"], a["u"]) < 1e-6
+    assert relative(b["X"], a["X"]) < 1e-6
