@@ -40,9 +40,10 @@ from pathlib import Path
 
 import numpy as np
 
-from fenics_elasto.anatomy_repair import Shell, closed_shells, cut_by_planes, enclosed_volume, quiet_vtk, sharp_edges
+from fenics_elasto.anatomy_repair import Shell, closed_shells, cut_by_planes, enclosed_volume, sharp_edges
 from fenics_elasto.errors import UserError, require
 from fenics_elasto.scene import fresh_gmsh_model
+from fenics_elasto.surface import quiet_vtk
 
 UNITS = ("mm", "cm", "m")
 SPEC_KEYS = ("units", "size", "organ_size", "body", "regions", "cavities", "patches")
@@ -316,7 +317,7 @@ def _check_apart(shells: list[Shell], gap: float) -> None:
             b = shells[j]
             if (a.bounds[0] > b.bounds[1] + gap).any() or (b.bounds[0] > a.bounds[1] + gap).any():
                 continue
-            with quiet_vtk():
+            with quiet_vtk(raise_errors=True):
                 _, contacts = polys[i].collision(polys[j], contact_mode=1)
             require(contacts == 0, _contact(a, b, "intersect"))
             distance = _gap(a, b, gap)

@@ -114,23 +114,39 @@ class Surface:
 
 
 @contextmanager
-def quiet_vtk():
-    """VTK's messages (pyvista hands them to the root logger) and pyvista's warnings kept
-    from the terminal; yields the list of VTK messages, for an error line."""
+def quiet_vtk(raise_errors: bool = False):
+    """VTK kept off the terminal: its logger silenced, the errors of its output window
+    caught, what pyvista hands to the root logger kept, pyvista's warnings ignored.
+    Yields the list of VTK's messages (first line each, errors first; filled at the
+    end of the block), for an error line. ``raise_errors``: a VTK error raises
+    pyvista's ``VTKExecutionError`` at the end of the block."""
+    import pyvista as pv
+
     root = logging.getLogger()
     messages: list[str] = []
+    logged: list[str] = []
 
     class Keep(logging.Handler):
         def emit(self, record):
-            messages.append(record.getMessage().splitlines()[0])
+            logged.append(record.getMessage().splitlines()[0])
 
     saved, root.handlers = root.handlers, [Keep()]  # a handler there: no basicConfig on logging.error
     try:
-        with warnings.catch_warnings():
+        with pv.vtk_verbosity("off"), warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            yield messages
+            catcher = pv.VtkErrorCatcher(raise_errors=raise_errors, send_to_logging=False)
+            try:
+                with catcher:
+                    yield messages
+            finally:
+                messages += [_vtk_text(event) for event in catcher.error_events] + logged
     finally:
         root.handlers = saved
+
+
+def _vtk_text(event) -> str:
+    """An error event of VTK's output window as one line."""
+    return str(getattr(event, "alert", event)).strip().splitlines()[0]
 
 
 def read_polydata(path: Path, what: str = "surface"):
