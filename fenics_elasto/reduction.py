@@ -100,14 +100,31 @@ def pca(examples: np.ndarray, rank: int, first: np.ndarray | None = None) -> tup
 
 
 def example_target(problem: InverseProblem, path: Path) -> SurfaceTerm:
-    """A training target: one surface file, or a folder of surface_<group>.vtp files."""
+    """A training target: one surface file, or a folder of surface_<group>.vtp files;
+    refused if it does not lie on the matched surface."""
     scene = problem.scene
     if path.is_dir():
         files = [path / f"surface_{g}.vtp" for g in scene.matched]
         missing = [str(f) for f in files if not f.is_file()]
         require(not missing, f"{path}: example folder lacks {', '.join(missing)}")
-        return SurfaceTerm([read_surface(f, scene.gdim) for f in files], problem.node_groups())
-    return SurfaceTerm([read_surface(path, scene.gdim)], np.zeros(len(problem.matched_coords), int))
+        term = SurfaceTerm([read_surface(f, scene.gdim) for f in files], problem.node_groups())
+    else:
+        term = SurfaceTerm([read_surface(path, scene.gdim)], np.zeros(len(problem.matched_coords), int))
+    _check_overlap(problem, term, path)
+    return term
+
+
+OVERLAP = 0.25  # an example further from the matched surface than this x its size is elsewhere (as estimate's target)
+
+
+def _check_overlap(problem: InverseProblem, term: SurfaceTerm, path: Path) -> None:
+    """The example must deform the matched surface, not lie beside it: the same rule
+    as for estimate's target (rms distance under a quarter of the matched size)."""
+    y = problem.matched_coords
+    distance = float(np.sqrt(np.mean(np.sum(term.residual(y) ** 2, axis=1)))) if len(y) else 0.0
+    size = float(np.linalg.norm(np.ptp(y, axis=0))) if len(y) else 0.0
+    require(distance < OVERLAP * size, f"{path}: the example does not overlap the matched surface (rms distance "
+                                       f"{distance:.3g} vs matched size {size:.3g}); is it in the same units and frame?")
 
 
 def example_displacements(problem: InverseProblem, targets) -> np.ndarray:

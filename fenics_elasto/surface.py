@@ -65,6 +65,17 @@ class Surface:
     def closest(self, x: np.ndarray) -> np.ndarray:
         return self._query(x)[1]
 
+    @property
+    def extent(self) -> float:
+        """The diagonal of the bounding box."""
+        return float(np.linalg.norm(np.ptp(self.points, axis=0))) if len(self.points) else 0.0
+
+    @property
+    def mean_edge(self) -> float:
+        """The mean edge length: how finely the surface resolves a shape."""
+        corners = self.points[self.cells]
+        return float(np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2).mean()) if len(self.cells) else 0.0
+
     def _query(self, x):
         x = np.ascontiguousarray(x, dtype=np.float64)
         if len(x) == 0:
