@@ -45,8 +45,27 @@ def gmsh_errors():
     except Exception as err:  # gmsh raises a bare Exception carrying its last error
         errors.append(str(err))
     finally:
-        errors[:0] = [line.removeprefix("Error: ") for line in gmsh.logger.get() if line.startswith("Error")]
+        try:
+            logged = gmsh.logger.get()
+        except UnicodeDecodeError:  # gmsh quotes what it could not parse: bytes of a binary file
+            logged = ["Error: unreadable bytes (not a text or binary .msh?)"]
+        errors[:0] = [line.removeprefix("Error: ") for line in logged if line.startswith("Error")]
         gmsh.logger.stop()
+
+
+def read_msh_file(gmsh, path) -> None:
+    """Merge a gmsh .msh file into the current model; anything else, or what gmsh
+    reports as an error while reading it: one line naming the file."""
+    from pathlib import Path
+
+    path = Path(path)
+    require(path.is_file(), f"{path}: no such mesh file")
+    with open(path, "rb") as f:
+        head = f.read(11)
+    require(head == b"$MeshFormat", f"{path}: not a gmsh .msh file (it does not begin with $MeshFormat)")
+    with gmsh_errors() as errors:
+        gmsh.merge(str(path))
+    require(not errors, f"{path}: gmsh cannot read it ({errors[0] if errors else ''})")
 
 
 def _elements(gmsh, dim: int, tag: int) -> list[tuple[int, np.ndarray]]:

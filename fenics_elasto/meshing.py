@@ -15,7 +15,7 @@ from scipy.spatial import cKDTree
 from fenics_elasto.budget import CELLS_PER_VOLUME, check_mesh_cost
 from fenics_elasto.errors import UserError, require
 from fenics_elasto.matching import fit_surfaces
-from fenics_elasto.meshcheck import check_mesh, gmsh_errors
+from fenics_elasto.meshcheck import check_mesh, gmsh_errors, read_msh_file
 from fenics_elasto.scene import fresh_gmsh_model, gmsh_facet_groups
 from fenics_elasto.surface import quadratic_edges
 
@@ -106,11 +106,8 @@ def physical_surfaces(gmsh) -> dict[str, tuple[np.ndarray, np.ndarray]]:
 def read_surfaces(msh: Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """The facet groups of a 3D .msh file as (points, triangles); a file that is not a
     sound 3D mesh (meshcheck.py): one line."""
-    require(Path(msh).is_file(), f"{msh}: no such mesh file")
     with GmshModel("surfaces") as gmsh:
-        with gmsh_errors() as errors:
-            gmsh.merge(str(msh))
-        require(not errors, f"{msh}: gmsh cannot read it ({errors[0] if errors else ''})")
+        read_msh_file(gmsh, msh)
         require(gmsh.model.getPhysicalGroups(3), f"{msh}: not a 3D mesh with physical groups")
         check_mesh(gmsh, str(msh), 3)
         return physical_surfaces(gmsh)

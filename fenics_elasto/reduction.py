@@ -12,6 +12,7 @@ The examples are not centred: the span of W must contain the examples themselves
 
 from __future__ import annotations
 
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -52,8 +53,9 @@ class Bases:
     @staticmethod
     def read(path: Path) -> "Bases":
         require(path.is_file(), f"{path}: no such bases file")
+        require(zipfile.is_zipfile(path), f"{path}: not a bases file from `fenics-elasto train` (not an .npz archive)")
         try:
-            data = np.load(path)
+            data = np.load(path, allow_pickle=False)
             groups = data["atlas_groups"].tolist() if "atlas_groups" in data else []
             atlas = {g: (data[f"atlas_points_{g}"], data[f"atlas_triangles_{g}"]) for g in groups}
             held_out = float(data["held_out"]) if "held_out" in data else np.nan
@@ -80,8 +82,12 @@ class Bases:
             return from_atlas(self.W, atlas_order(problem, self.atlas))
         coords = problem.loaded.gather(problem.loaded.coords)
         same = self.loaded_coords.shape == coords.shape and np.allclose(self.loaded_coords, coords, atol=1e-9)
-        require(same, f"the bases were trained on other loaded nodes ({len(self.loaded_coords)} nodes) than "
-                      f"{problem.scene.path.name}'s ({len(coords)}); train them on this mesh or around an atlas")
+        if not same and self.loaded_coords.shape == coords.shape:
+            where = f"{len(coords)} nodes as here, but up to {np.abs(self.loaded_coords - coords).max():.3g} away"
+        else:
+            where = f"{len(self.loaded_coords)} nodes, here {len(coords)}"
+        require(same, f"the bases were trained on other loaded nodes than {problem.scene.path.name}'s ({where}); "
+                      "train them on this mesh or around an atlas")
         return self.W
 
 

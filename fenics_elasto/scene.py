@@ -21,7 +21,7 @@ from dolfinx.io.utils import distribute_entity_data
 from fenics_elasto.config import PROBLEM, apply_overrides, check_gdim, read_toml, validate_problem
 from fenics_elasto.errors import UserError, on_root, require
 from fenics_elasto.logs import log
-from fenics_elasto.meshcheck import check_mesh, gmsh_errors
+from fenics_elasto.meshcheck import check_mesh, read_msh_file
 
 ELASTIC_KEYS = ("E", "nu")
 
@@ -190,11 +190,8 @@ def read_msh(path: Path, comm=MPI.COMM_WORLD):
     facet_rows = {}  # rank 0: every facet group's facets as node rows
 
     def open_model():
-        require(path.is_file(), f"{path}: no such mesh file")
         fresh_gmsh_model(path.stem)
-        with gmsh_errors() as errors:
-            gmsh.merge(str(path))
-        require(not errors, f"{path}: gmsh cannot read it ({errors[0] if errors else ''})")
+        read_msh_file(gmsh, path)
         groups = gmsh.model.getPhysicalGroups()
         require(groups, f"{path}: the mesh has no physical groups")
         tdim = max(d for d, _ in groups)
@@ -205,6 +202,9 @@ def read_msh(path: Path, comm=MPI.COMM_WORLD):
         require(tdim == 3 or np.allclose(coords[:, 2], 0), f"{path}: a 2D mesh must lie in the z = 0 plane")
         cell_groups = [t for d, t in groups if d == tdim]
         require(cell_groups, f"{path}: no cell (region) physical groups")
+        unnamed = [t for t in cell_groups if not gmsh.model.getPhysicalName(tdim, t)]
+        require(not unnamed, f"{path}: cell physical group(s) {unnamed} have no name; the problem file names "
+                             "each region's material (gmsh: Physical Volume(\"name\") = ...)")
         check_mesh(gmsh, str(path), tdim)
         facet_rows.update(gmsh_facet_groups(gmsh, tdim))
         return tdim, sorted(facet_rows)

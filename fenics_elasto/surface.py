@@ -13,6 +13,7 @@ equal to 1e-15.
 from __future__ import annotations
 
 import logging
+import re
 import warnings
 from contextlib import contextmanager
 from pathlib import Path
@@ -150,14 +151,18 @@ def quiet_vtk(raise_errors: bool = False):
                 with catcher:
                     yield messages
             finally:
-                messages += [_vtk_text(event) for event in catcher.error_events] + logged
+                texts = [str(getattr(event, "alert", event)) for event in catcher.error_events] + logged
+                messages += [_vtk_text(text) for text in texts if text.strip()]
     finally:
         root.handlers = saved
 
 
-def _vtk_text(event) -> str:
-    """An error event of VTK's output window as one line."""
-    return str(getattr(event, "alert", event)).strip().splitlines()[0]
+def _vtk_text(text: str) -> str:
+    """A VTK message as one line, without object addresses ("Algorithm vtkPLYReader
+    (0x...) returned failure for request: ..." says: vtkPLYReader failed)."""
+    text = text.strip().splitlines()[0]
+    failed = re.match(r"Algorithm (\w+) .*returned failure", text)
+    return f"{failed.group(1)} failed" if failed else re.sub(r" \(0x[0-9a-f]+\)", "", text)
 
 
 def read_polydata(path: Path, what: str = "surface"):
@@ -165,6 +170,7 @@ def read_polydata(path: Path, what: str = "surface"):
     import pyvista as pv
 
     path = Path(path)
+    require(not path.is_dir(), f"{path}: is a directory, not a {what} file")
     require(path.is_file(), f"{path}: no such {what} file")
     with quiet_vtk() as messages:
         try:
@@ -211,12 +217,19 @@ def _segments(lines: np.ndarray) -> np.ndarray:
 
 def read_landmarks(path: Path, gdim: int) -> tuple[np.ndarray, np.ndarray]:
     """CSV rows ``source point, target point`` (2*gdim numbers; a header line is allowed)."""
+    require(not path.is_dir(), f"{path}: is a directory, not a landmark file")
     require(path.is_file(), f"{path}: no such landmark file")
     try:
-        data = np.loadtxt(path, delimiter=",", ndmin=2, comments="#",
-                          skiprows=1 if not _is_numeric_line(path.read_text().splitlines()[0]) else 0)
-    except (ValueError, IndexError) as err:
+        lines = path.read_text().splitlines()
+        require(any(line.strip() and not line.lstrip().startswith("#") for line in lines[1:] + lines[:1]),
+                f"{path}: no landmark rows (an empty file)")
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # numpy warns of a header-only file: said below
+            data = np.loadtxt(path, delimiter=",", ndmin=2, comments="#",
+                              skiprows=1 if not _is_numeric_line(lines[0]) else 0)
+    except ValueError as err:
         raise UserError(f"{path}: cannot read landmarks ({err})") from None
+    require(data.size > 0, f"{path}: no landmark rows (only a header)")
     require(data.shape[1] == 2 * gdim,
             f"{path}: expected {2 * gdim} columns (source point, target point) for a {gdim}D scene, got {data.shape[1]}")
     require(np.isfinite(data).all(), f"{path}: landmarks contain NaN or infinite values")
