@@ -20,6 +20,7 @@ from dolfinx.io.utils import distribute_entity_data
 
 from fenics_elasto.config import PROBLEM, apply_overrides, check_gdim, read_toml, validate_problem
 from fenics_elasto.errors import UserError, on_root, require
+from fenics_elasto.interrupts import restore_handlers
 from fenics_elasto.logs import log
 from fenics_elasto.meshcheck import check_mesh, read_msh_file
 
@@ -154,6 +155,7 @@ def fresh_gmsh_model(name: str):
 
     if not gmsh.isInitialized():
         gmsh.initialize(interruptible=False)
+        restore_handlers()  # gmsh resets SIGTERM and SIGHUP to their default: they would kill the run
     gmsh.option.setNumber("General.Terminal", 0)
     gmsh.clear()
     gmsh.option.restoreDefaults()
