@@ -621,6 +621,7 @@ SCENE = [
     case("scene-size-negative", lambda e: spec(e, "negsize", SPEC.format(surface="ball.stl").replace("5.0\n[body]",
                                                                                                "-5.0\n[body]")), "size"),
     case("scene-cli-size-nan", lambda e: spec(e, "nansize") + ["--size", "nan"], "--size"),
+    case("scene-size-memory", lambda e: spec(e, "tiny") + ["--size", 0.01], "spec.toml", "size 0.01", "GB"),
     case("scene-organ-size-above-size", lambda e: spec(e, "organ_big", "organ_size = 9.0\n" + SPEC.format(surface="ball.stl")),
          "organ_size"),
     case("scene-surface-missing", lambda e: spec(e, "nosurface", surface="gone.stl"), "gone.stl"),
