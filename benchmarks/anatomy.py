@@ -20,6 +20,7 @@ import pyvista as pv
 
 import fenics_elasto  # noqa: F401  (imports dolfinx_solver before petsc4py)
 from fenics_elasto.anatomy import build_scene_from_spec
+from fenics_elasto.logs import show
 
 PROSTATE = Path(fenics_elasto.__file__).parent / "meshes" / "prostate" / "prostate.stl"
 
@@ -65,14 +66,8 @@ def main():
         spec, triangles = write_inputs(folder, args.subdivide, args.nsub, args.size, args.organ_size)
         print(f"input: {triangles} triangles in 3 files")
         start = time.perf_counter()
-        last = [start]
-
-        def say(text):
-            now = time.perf_counter()
-            print(f"  {now - last[0]:6.2f} s  {text.replace(str(folder) + '/', '')}")
-            last[0] = now
-
-        build_scene_from_spec(spec, folder / "out", say=say)
+        show()  # the library's progress lines: each step's time is the gap between two
+        build_scene_from_spec(spec, folder / "out")
         print(f"scene: {time.perf_counter() - start:.1f} s in total")
 
 

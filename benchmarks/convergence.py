@@ -25,7 +25,9 @@ from fenics_elasto.reduction import train_bases
 from fenics_elasto.scene import load_scene
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "demos"))
-from prostate_elastography import SIZE, make_examples, make_targets, recovered, run_case  # noqa: E402
+from prostate_elastography import SIZE, recovered, run_case  # noqa: E402
+
+from fenics_elasto.study import simulate_examples, simulate_targets  # noqa: E402
 
 TRUE_E = 50.0
 TARGETS = ((1.3, 4), (1.0, 4), (0.8, 4), (0.8, 8))  # (h of the target mesh, pieces per facet edge)
@@ -33,15 +35,15 @@ SOURCES = ((ORGAN_SIZE, PROSTATE_SIZE), (ORGAN_SIZE, 0.15), (0.25, PROSTATE_SIZE
 
 
 def target(out: Path, size: float, pieces: int) -> str:
-    return make_targets(out / f"target_{size:g}_{pieces}", (TRUE_E,), size, pieces=pieces)[TRUE_E]["surfaces"]
+    return simulate_targets(out / f"target_{size:g}_{pieces}", (TRUE_E,), size, pieces=pieces)[TRUE_E].settings()
 
 
 def source_with_bases(out: Path, organ: float, prostate: float):
     source = build_scene("prostate-phantom", out / f"source_{organ:g}_{prostate:g}", size=SIZE,
                          organ_size=organ, prostate_size=prostate)
-    examples = make_examples(source, source.parent / "examples", 12)
+    examples = simulate_examples(source, source.parent / "examples", 12)
     trainer = InverseProblem(load_scene(source), target=False)
-    return source, train_bases(trainer, examples, rank=12, say=lambda *_: None).W
+    return source, train_bases(trainer, examples, rank=12).W
 
 
 def row(label: str, result: dict) -> str:

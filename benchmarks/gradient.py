@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 import fenics_elasto  # noqa: F401
-from fenics_elasto.estimate import NestedEstimator, Options
+from fenics_elasto.estimate import Estimator, Options
 from fenics_elasto.io import write_matched_surfaces
 from fenics_elasto.meshing import build_scene
 from fenics_elasto.objective import InverseProblem
@@ -38,13 +38,14 @@ def gradient_costs(tmp: Path):
     theta = np.array([40.0])
     forces = np.zeros(problem.force_dofs)
     problem.evaluate_forces(theta, forces)  # factorize once: the inner loop re-uses it
-    E, nu = problem.materials(theta)
+    c = problem.forward.coefficients(theta)[0]
     f = problem.model.function("f")
-    solve = timed(lambda: problem.model.solve(E, nu, problem.clamped, f.x.petsc_vec))
+    solve = timed(lambda: problem.model.solve(c, problem.forward.clamped, f.x.petsc_vec))
     forward = timed(lambda: problem.evaluate_forces(theta, forces))
-    both = timed(lambda: problem.evaluate_forces(theta, forces, "both"))
+    both = timed(lambda: problem.evaluate_forces(theta, forces, gradient=True))
     n = problem.force_dofs + len(theta)
-    print(f"phantom P2: {problem.model.num_dofs} dofs, {problem.force_dofs} force dofs, {problem.matched.total} matched nodes")
+    print(f"phantom P2: {problem.model.num_dofs} dofs, {problem.force_dofs} force dofs, "
+          f"{problem.observation.node_count} matched nodes")
     print("| quantity | seconds | ratio |")
     print("|---|---|---|")
     print(f"| one back-solve (factorization re-used) | {solve:.4f} | 1 |")
@@ -86,15 +87,14 @@ def inner_solvers(tmp: Path):
     print("| inner solver | iterations | seconds | Phi* |")
     print("|---|---|---|---|")
     for inner in ("gauss-newton", "lbfgs", "lbfgs-forces"):
-        est = NestedEstimator(problem, Options(inner=inner, inner_tol=1e-10), say=lambda *_: None)
-        d0 = est.matched_boundary_displacement()
-        c0 = est.initial_controls(theta, d0)
-        est.anchor = c0 if inner == "gauss-newton" else None
-        est.control_scale = max(float(np.sqrt(np.mean(c0**2))), 1e-300)
-        est.phi_scale = est.evaluate(theta, est.boundary(c0) if inner == "gauss-newton" else c0).phi
+        est = Estimator(problem, Options(inner=inner, inner_tol=1e-10))
+        solver = est.profile.inner
         start = time.perf_counter()
-        _, ev, nit = est.solve_inner(theta, c0)
-        print(f"| {inner} | {nit} | {time.perf_counter() - start:.3f} | {ev.phi:.3e} |")
+        if inner == "gauss-newton":
+            result = solver.solve(theta, est.profile.response, None)
+        else:
+            result = solver.solve(theta, est.initial_controls(theta))
+        print(f"| {inner} | {result.iterations} | {time.perf_counter() - start:.3f} | {result.value:.3e} |")
 
 
 if __name__ == "__main__":

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 import fenics_elasto  # noqa: F401
-from fenics_elasto.estimate import NestedEstimator, Options
+from fenics_elasto.estimate import Estimator, Options, surface_matched_start
 from fenics_elasto.io import write_matched_surfaces
 from fenics_elasto.meshing import build_scene
 from fenics_elasto.objective import InverseProblem
@@ -34,8 +34,10 @@ from fenics_elasto.surrogate import MaterialSurrogate
 from forward import best_of  # benchmarks/ is the script's folder
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "demos"))
-from prostate_elastography import (FINE, TRUE_E, make_examples, make_targets, rank_sweep,  # noqa: E402
-                                   rank_table, recovered, run_case, speedup_table)
+from prostate_elastography import (FINE, TRUE_E, rank_sweep, rank_table, recovered, run_case,  # noqa: E402
+                                   speedup_table)
+
+from fenics_elasto.study import simulate_examples, simulate_targets  # noqa: E402
 from fenics_elasto.reduction import train_bases  # noqa: E402
 
 
@@ -60,15 +62,14 @@ def costs(size: float) -> None:
         problem = InverseProblem(load_scene(source, [f"target={{surfaces={{{table}}}}}"]))
     theta = np.array([40.0])
     model = problem.model
-    E, nu = problem.materials(theta)
-    model.material_matrices  # assembled once per mesh: not part of the factorization
+    model.terms  # assembled once per mesh: not part of the factorization
     start = time.perf_counter()
-    factor = model.factorize(E, nu, problem.clamped_boundary)
+    factor = model.factorize(problem.forward.coefficients(theta)[0], problem.forward.clamped_boundary)
     factor_time = time.perf_counter() - start
     b, x = model.function("b"), model.function("x")
     b.x.array[:] = 1.0
     solve = best_of(lambda: factor.solve(b.x.petsc_vec, x.x.petsc_vec))
-    print(f"phantom P2: {model.num_dofs} dofs, {problem.force_dofs} force dofs, {problem.matched.total} matched nodes; "
+    print(f"phantom P2: {model.num_dofs} dofs, {problem.force_dofs} force dofs, {problem.observation.node_count} matched nodes; "
           f"factorization {factor_time:.2f} s, back-solve {solve:.4f} s")
     print("| rank r | response J (block solve) s | r back-solves in a loop s | loop / block |")
     print("|---|---|---|---|")
@@ -78,24 +79,21 @@ def costs(size: float) -> None:
         block = best_of(lambda: problem.response(theta, W))
         print(f"| {r} | {block:.3f} | {r * solve:.3f} | {r * solve / block:.1f} |")
 
-    est = NestedEstimator(problem, Options(inner="gauss-newton"), say=lambda *_: None)
-    d0 = est.matched_boundary_displacement()
+    d0 = surface_matched_start(problem)
     print("\n| inner iteration | seconds | FE solves |")
     print("|---|---|---|")
     for r in (12, 48):
         W = np.linalg.qr(np.c_[d0, rng.standard_normal((problem.force_dofs, r - 1))])[0]
-        est = NestedEstimator(problem, Options(inner="gauss-newton", inner_maxiter=1, inner_tol=0.0), say=lambda *_: None,
-                              basis=W)
+        est = Estimator(problem, Options(inner="gauss-newton", inner_maxiter=1, inner_tol=0.0, surrogate=False), basis=W)
         J = problem.response(theta, W)
-        est.anchor = W.T @ d0
-        seconds = best_of(lambda: est._gauss_newton(J, W.T @ d0))
+        seconds = best_of(lambda: est.profile.inner.fit(J))
         print(f"| reduced Gauss-Newton, rank {r} | {seconds:.4f} | 0 |")
         surrogate = MaterialSurrogate(problem, W)
         for E_snap in (4.6, 24.5, 130.0):  # the phantom's scan
-            surrogate.add([E_snap], problem.response_block([E_snap], W))
+            surrogate.add([E_snap], problem.forward.response_block([E_snap], W))
         seconds = best_of(lambda: surrogate.response(theta))
         print(f"| J(theta) and dJ/dtheta from the surrogate ({surrogate.size} directions), rank {r} | {seconds:.4f} | 0 |")
-    both = best_of(lambda: problem.evaluate_displacement(theta, d0, "both"))
+    both = best_of(lambda: problem.evaluate_displacement(theta, d0, gradient=True))
     print(f"| full-space L-BFGS ({problem.force_dofs} unknowns) | {both:.4f} | 2 back-solves + 2 matvecs |")
     full = problem.force_dofs * solve
     print(f"| full-space Gauss-Newton would first need J: {problem.force_dofs} back-solves | ~{full:.1f} | "
@@ -105,25 +103,25 @@ def costs(size: float) -> None:
 
 def estimates(tmp: Path, size: float) -> None:
     source = build_scene("prostate-phantom", tmp / "source", size=size)
-    examples = make_examples(source, tmp / "examples", 12)
+    examples = simulate_examples(source, tmp / "examples", 12)
     trainer = InverseProblem(load_scene(source), target=False)
-    W = train_bases(trainer, examples, rank=12, say=lambda *_: None).W
-    targets = make_targets(tmp / "targets", TRUE_E, FINE, source=source)
+    W = train_bases(trainer, examples, rank=12).W
+    targets = simulate_targets(tmp / "targets", TRUE_E, FINE, source=source)
     rows = []
     for E in TRUE_E:
-        rows.append((E, run_case(source, targets[E]["landmarks"]), run_case(source, targets[E]["landmarks"], W)))
+        rows.append((E, run_case(source, targets[E].settings(landmarks=True)), run_case(source, targets[E].settings(landmarks=True), W)))
         print(f"  E = {E:g}: full {recovered(rows[-1][1]):.2f} ({rows[-1][1]['seconds']:.1f} s), "
               f"reduced {recovered(rows[-1][2]):.2f} ({rows[-1][2]['seconds']:.1f} s)", flush=True)
     print("\n" + "\n".join(speedup_table(rows, trainer.force_dofs, 12)))
 
     E = 50.0
-    reduced = {"landmarks": rows[TRUE_E.index(E)][2], "surfaces": run_case(source, targets[E]["surfaces"], W)}
-    capped = Options(inner_maxiter=100, outer_maxiter=6)
+    reduced = {"landmarks": rows[TRUE_E.index(E)][2], "surfaces": run_case(source, targets[E].settings(landmarks=False), W)}
+    capped = Options(inner_maxiter=100, outer_maxiter=6, allow_undetermined=True)  # it is refused otherwise
     others = [("paper's full space: L-BFGS on raw forces, landmarks", "landmarks",
-               run_case(source, targets[E]["landmarks"], options=Options(inner="lbfgs-forces", inner_maxiter=100,
+               run_case(source, targets[E].settings(landmarks=True), options=Options(inner="lbfgs-forces", inner_maxiter=100,
                                                                          outer_maxiter=6))),
               ("full space, surfaces (E not determined)", "surfaces",
-               run_case(source, targets[E]["surfaces"], options=capped))]
+               run_case(source, targets[E].settings(landmarks=False), options=capped))]
     print(f"\nOther full-space estimates (true E = {E:g}; capped at 100 inner / 6 outer iterations), "
           "against the reduced estimate on the same target")
     print("| method | target | E | error % | seconds | outer/inner | reduced E | reduced s | speed-up |")
@@ -135,7 +133,7 @@ def estimates(tmp: Path, size: float) -> None:
               f"{r['seconds'] / red['seconds']:.1f}x |")
 
     print(f"\nFig-8-like: rank of the bases (surface target, true E = {E:g})")
-    print("\n".join(rank_table(rank_sweep(source, targets[E]["surfaces"], W, (1, 2, 4, 8, 12), E))))
+    print("\n".join(rank_table(rank_sweep(source, targets[E].settings(landmarks=False), W, (1, 2, 4, 8, 12), E))))
 
 
 if __name__ == "__main__":

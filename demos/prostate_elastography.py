@@ -31,85 +31,19 @@ from pathlib import Path
 import numpy as np
 
 import fenics_elasto  # noqa: F401
-from fenics_elasto.elasticity import ElasticModel
 from fenics_elasto.estimate import estimate
-from fenics_elasto.io import write_matched_surfaces
-from fenics_elasto.meshing import ORGAN_SIZE, PROSTATE_SIZE, atlas_surfaces, build_scene, phantom_organs
+from fenics_elasto.atlas import atlas_surfaces
+from fenics_elasto.meshing import ORGAN_SIZE, PROSTATE_SIZE, build_scene
 from fenics_elasto.objective import InverseProblem
 from fenics_elasto.reduction import train_atlas_bases, train_bases
-from fenics_elasto.scene import load_scene, reconfigure
-from fenics_elasto.simulate import simulate, write_landmarks_for
+from fenics_elasto.scene import load_scene
+from fenics_elasto.study import simulate_examples, simulate_targets
 
 TRUE_E = (25.0, 50.0, 75.0)
 SIZE, FINE = 1.6, 1.3  # element sizes (cm, --size) of the source patients and of the target meshes
-EXAMPLE_E = (20.0, 40.0, 60.0, 80.0)  # prostate E levels (kPa) of the example deformations
-ORGANS = ("bladder", "prostate_surface", "rectum")
-
-
-def organ_motion(organs: dict, bladder_scale, bladder_shift, rectum_scale, rectum_shift) -> list[str]:
-    """--set overrides: the bladder inflates about its centre, the rectum about its axis."""
-    bc = organs["bladder"]["center"]
-    rc = organs["rectum"]["center"]
-    return [
-        f"boundary.displacement.bladder={{scale={bladder_scale}, center={list(map(float, bc))}, "
-        f"value={list(map(float, bladder_shift))}}}",
-        f"boundary.displacement.rectum={{gradient=[[{rectum_scale}, 0, 0], [0, {rectum_scale}, 0], [0, 0, 0]], "
-        f"center={list(map(float, rc))}, value={list(map(float, rectum_shift))}}}",
-    ]
-
-
-def make_examples(source: Path, out: Path, count: int, seed: int = 1, patient: int = 0) -> list[Path]:
-    """Example deformations of a patient (phantom seed), saved as organ surfaces.
-
-    The prostate E takes a few levels (the organ motion, not E, is what the bases
-    learn), so examples with equal E share one factorization of one model.
-    """
-    rng = np.random.default_rng(seed)
-    organs = phantom_organs(patient)
-    scene = load_scene(source)
-    model = ElasticModel(scene)
-    draws = [(rng.choice(EXAMPLE_E), organ_motion(organs, rng.uniform(0.0, 0.15), rng.uniform(-0.15, 0.15, 3),
-                                                   rng.uniform(0.0, 0.2), rng.uniform(-0.1, 0.1, 3)))
-             for _ in range(count)]
-    folders = [out / f"example_{i:02d}" for i in range(count)]
-    for i in sorted(range(count), key=lambda i: draws[i][0]):
-        E, motion = draws[i]
-        example = reconfigure(scene, motion + [f"materials.prostate.E={E}"])
-        write_matched_surfaces(folders[i], example, simulate(example, model).u)
-    return folders
-
-
-def make_targets(out: Path, Es, size: float, patient: int = 0, source: Path | None = None, pieces: int = 8,
-                 **detail) -> dict:
-    """The held-out 'measurements', one per true prostate E: a finer mesh (built once,
-    ``detail``: its organ_size / prostate_size), organ motion unlike the examples, the
-    curved organ surfaces written as ``pieces`` x ``pieces`` flat triangles per facet.
-
-    Returns E -> {"surfaces": --set value of a surface target, and given the source,
-    "landmarks": of a landmark target (the fine solution at the source's matched nodes)}.
-    """
-    organs = phantom_organs(patient)
-    fine = load_scene(build_scene("prostate-phantom", out / "fine", size=size, seed=patient, **detail))
-    model = ElasticModel(fine)
-    matched = load_scene(source) if source is not None else None
-    motion = organ_motion(organs, 0.12, [0.1, -0.1, 0.05], 0.15, [0.05, 0.0, 0.0])
-    targets = {}
-    for E in Es:
-        scene = reconfigure(fine, motion + [f"materials.prostate.E={E}"])
-        folder = out / f"target_E{E:g}"
-        u = simulate(scene, model).u
-        write_matched_surfaces(folder, scene, u, pieces)
-        table = ", ".join(f"{g}='{(folder / f'surface_{g}.vtp').resolve()}'" for g in ORGANS)
-        targets[E] = {"surfaces": f"target={{surfaces={{{table}}}}}"}
-        if matched is not None:
-            landmarks = write_landmarks_for(matched, u, folder / "landmarks.csv")
-            targets[E]["landmarks"] = f"target={{landmarks='{landmarks.resolve()}'}}"
-    return targets
-
-
-def run_case(source: Path, target: str, basis=None, options=None) -> dict:
-    """One estimate (``target``: a --set value from make_targets); result.json fields + seconds."""
-    problem = InverseProblem(load_scene(source, [target]))
+def run_case(source: Path, target: dict, basis=None, options=None) -> dict:
+    """One estimate (``target``: settings, e.g. ``TargetFiles.settings()``); result.json fields + seconds."""
+    problem = InverseProblem(load_scene(source, target))
     start = time.perf_counter()
     result = estimate(problem, options=options, basis=basis).record
     result["seconds"] = time.perf_counter() - start
@@ -180,7 +114,7 @@ def main():
 
     source = build_scene("prostate-phantom", out / "source", size=SIZE, **detail)
     print(f"1. {count} example deformations of the source patient", flush=True)
-    examples = make_examples(source, out / "examples", count)
+    examples = simulate_examples(source, out / "examples", count)
     print("2. train the force bases", flush=True)
     trainer = InverseProblem(load_scene(source), target=False)
     bases = train_bases(trainer, examples, rank=count)
@@ -190,17 +124,17 @@ def main():
           + " ".join(f"{v:.3f}" for v in bases.variance), flush=True)
 
     print(f"3. targets with prostate E = {', '.join(f'{E:g}' for E in cases)} kPa (fine mesh h = {FINE})", flush=True)
-    targets = make_targets(out, cases, FINE, source=source, **detail)
+    targets = simulate_targets(out, cases, FINE, source=source, **detail)
     results = {}
     for E in cases:
-        results[E] = run_case(source, targets[E]["surfaces"], bases.W)
+        results[E] = run_case(source, targets[E].settings(landmarks=False), bases.W)
         print(f"   true E = {E:g}, reduced, surfaces: E = {recovered(results[E]):.2f} ({results[E]['seconds']:.1f} s, "
               f"{iterations(results[E])} outer/inner)", flush=True)
     lines = table1(results, rank)
     print("4. speed-up: full force space against reduced, landmark targets", flush=True)
     speedups = []
     for E in cases:
-        speedups.append((E, run_case(source, targets[E]["landmarks"]), run_case(source, targets[E]["landmarks"], bases.W)))
+        speedups.append((E, run_case(source, targets[E].settings(landmarks=True)), run_case(source, targets[E].settings(landmarks=True), bases.W)))
         print(f"   true E = {E:g}: full {recovered(speedups[-1][1]):.2f} ({speedups[-1][1]['seconds']:.1f} s), "
               f"reduced {recovered(speedups[-1][2]):.2f} ({speedups[-1][2]['seconds']:.1f} s)", flush=True)
     lines += [""] + speedup_table(speedups, trainer.force_dofs, rank)
@@ -209,7 +143,7 @@ def main():
     print("\n".join(lines), flush=True)
 
     print("5. Fig. 8: rank against E error, iterations and time", flush=True)
-    sweep = rank_sweep(source, targets[middle]["surfaces"], bases.W, [k for k in (1, 4, 8) if k < rank] + [rank],
+    sweep = rank_sweep(source, targets[middle].settings(landmarks=False), bases.W, [k for k in (1, 4, 8) if k < rank] + [rank],
                        middle, known={rank: results[middle]})
     plot_rank_sweep(sweep, out / "fig8_rank.png")
     print("   Fig. 7: the first two force bases on bladder and rectum", flush=True)
@@ -284,7 +218,7 @@ def atlas_study(out: Path, patients: int, examples: int, held_out, cases, fine: 
     training = []
     for seed in range(1, patients + 1):
         source = build_scene("prostate-phantom", out / f"patient{seed}", size=SIZE, seed=seed, atlas=atlas, **detail)
-        folders = make_examples(source, out / f"patient{seed}" / "examples", examples, seed=100 + seed, patient=seed)
+        folders = simulate_examples(source, out / f"patient{seed}" / "examples", examples, seed=100 + seed, patient=seed)
         training.append((InverseProblem(load_scene(source), target=False), folders))
         print(f"   patient {seed}: {examples} example deformations", flush=True)
     bases = train_atlas_bases(atlas, training, rank)
@@ -293,10 +227,10 @@ def atlas_study(out: Path, patients: int, examples: int, held_out, cases, fine: 
     rows = []
     for seed in held_out:
         source = build_scene("prostate-phantom", out / f"heldout{seed}", size=SIZE, seed=seed, atlas=atlas, **detail)
-        targets = make_targets(out / f"heldout{seed}", cases, fine, patient=seed, **detail)
+        targets = simulate_targets(out / f"heldout{seed}", cases, fine, patient=seed, **detail)
         basis = bases.on(InverseProblem(load_scene(source), target=False))  # the loaded nodes: once per patient
         for E in cases:
-            result = run_case(source, targets[E]["surfaces"], basis)
+            result = run_case(source, targets[E].settings(landmarks=False), basis)
             rows.append((seed, E, result))
             print(f"   held-out patient {seed}, E = {E:g}: recovered {recovered(result):.2f} "
                   f"({result['seconds']:.1f} s)", flush=True)

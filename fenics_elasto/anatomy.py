@@ -31,10 +31,8 @@ wholly on one side and a patch is a set of gmsh surfaces (a physical group).
 
 from __future__ import annotations
 
-import difflib
 import math
 import re
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -43,14 +41,13 @@ import numpy as np
 from fenics_elasto.anatomy_repair import (Shell, closed_shells, cut_by_planes, enclosed_volume, sharp_edges,
                                           triangle_areas)
 from fenics_elasto.budget import CELLS_PER_VOLUME, check_mesh_cost
+from fenics_elasto.config import read_scene_spec
 from fenics_elasto.errors import UserError, require
+from fenics_elasto.gmsh_models import fresh_gmsh_model
+from fenics_elasto.logs import log
 from fenics_elasto.meshcheck import check_mesh
-from fenics_elasto.scene import fresh_gmsh_model
 from fenics_elasto.surface import quiet_vtk
 
-UNITS = ("mm", "cm", "m")
-SPEC_KEYS = ("units", "size", "organ_size", "body", "regions", "cavities", "patches")
-BODY_SHAPES = ("surface", "box", "ellipsoid")
 ORGAN_SIZE_RATIO = 3.0  # default organ_size = size / 3
 BODY_ELEMENTS = 15.0  # default size = body diameter (bounding-box diagonal) / 15
 TOUCH_RATIO = 0.1  # organs closer than organ_size / 10 touch (gmsh would squeeze flat elements in)
@@ -64,157 +61,34 @@ INFLATION = 0.05  # the example [boundary.displacement] of every cavity: 5 % inf
 # --------------------------------------------------------------------------- the spec
 
 
-def _kind(value) -> str:
-    kinds = ((bool, "a boolean"), (int, "an integer"), (float, "a number"), (str, "a string"),
-             (list, "a list"), (dict, "a table"))
-    return next((name for types, name in kinds if isinstance(value, types)), type(value).__name__)
-
-
-def _table(value, where: str, keys, required=()) -> dict:
-    """A TOML table with only known keys (a typo gets a did-you-mean)."""
-    require(isinstance(value, dict), f"{where}: expected a table, got {value!r} ({_kind(value)})")
-    for key in value:
-        if key not in keys:
-            near = difflib.get_close_matches(key, keys, n=1)
-            hint = f"did you mean {near[0]!r}?" if near else f"known keys: {', '.join(keys)}"
-            raise UserError(f"{where}: unknown key {key!r}; {hint}")
-    for key in required:
-        require(key in value, f"{where}: missing key {key!r}")
-    return value
-
-
-def _positive(value, where: str) -> float:
-    require(isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value > 0,
-            f"{where}: expected a number > 0, got {value!r} ({_kind(value)})")
-    return float(value)
-
-
-def _string(value, where: str) -> str:
-    require(isinstance(value, str) and value.strip(), f"{where}: expected a file name, got {value!r} ({_kind(value)})")
-    return value
-
-
-def _vector(value, where: str) -> list[float]:
-    ok = isinstance(value, list) and len(value) == 3 and all(
-        isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in value)
-    require(ok, f"{where}: expected 3 numbers [x, y, z], got {value!r}")
-    return [float(v) for v in value]
-
-
-def _group_name(name: str, where: str) -> str:
-    require(re.fullmatch(r"[A-Za-z][A-Za-z0-9_-]*", name) is not None,
-            f"{where}: {name!r} is not a group name (letters, digits, '_' and '-', starting with a letter)")
-    return name
-
-
-def _margin(value, where: str) -> dict:
-    return {"margin": _positive(_table(value, where, ("margin",), ("margin",))["margin"], f"{where}.margin")}
-
-
-def _body(value, where: str) -> dict:
-    body = _table(value, where, (*BODY_SHAPES, "material"))
-    given = [k for k in BODY_SHAPES if k in body]
-    require(len(given) == 1, f"{where}: give exactly one of surface, box, ellipsoid (got {', '.join(given) or 'none'})")
-    return {
-        "surface": _string(body["surface"], f"{where}.surface") if "surface" in body else None,
-        "box": _margin(body["box"], f"{where}.box") if "box" in body else None,
-        "ellipsoid": _margin(body["ellipsoid"], f"{where}.ellipsoid") if "ellipsoid" in body else None,
-        "material": _group_name(body.get("material", "tissue"), f"{where}.material"),
-    }
-
-
-def _named(value, where: str, parse) -> dict:
-    """``[regions.NAME]``-style tables: NAME -> parse(table)."""
-    require(isinstance(value, dict), f"{where}: expected [{where.split(': ')[-1]}.NAME] tables, got {value!r}")
-    return {_group_name(name, f"{where}.{name}"): parse(spec, f"{where}.{name}") for name, spec in value.items()}
-
-
-def _region(value, where: str) -> dict:
-    surface = _table(value, where, ("surface",), ("surface",))["surface"]
-    files = surface if isinstance(surface, list) and surface else [surface]
-    return {"surface": [_string(f, f"{where}.surface") for f in files]}
-
-
-def _cavity(value, where: str) -> dict:
-    return {"surface": _string(_table(value, where, ("surface",), ("surface",))["surface"], f"{where}.surface")}
-
-
-def _patch(value, where: str) -> dict:
-    side = _table(_table(value, where, ("side",), ("side",))["side"], f"{where}.side", ("point", "normal"), ("point", "normal"))
-    normal = _vector(side["normal"], f"{where}.side.normal")
-    require(np.linalg.norm(normal) > 0, f"{where}.side.normal: must not be zero")
-    return {"side": {"point": _vector(side["point"], f"{where}.side.point"), "normal": normal}}
-
-
-def _unique_groups(spec: dict, where: str) -> None:
-    owners = {"outer": "the body's outer boundary"}
-
-    def claim(name, owner):
-        require(name not in owners, f"{where}: group name {name!r} of {owner} clashes with {owners.get(name)}")
-        owners[name] = owner
-
-    claim(spec["body"]["material"], "body.material")
-    for name in spec["regions"]:
-        claim(name, f"regions.{name}")
-        claim(f"{name}_surface", f"regions.{name} (its surface)")
-    for section in ("cavities", "patches"):
-        for name in spec[section]:
-            claim(name, f"{section}.{name}")
-
-
 def read_spec(path: Path) -> dict:
-    """The scene spec, checked and normalised: every key present (None where not given),
-    region surfaces as lists of file names."""
-    path = Path(path)
-    require(path.is_file(), f"{path}: no such scene spec")
-    try:
-        raw = tomllib.loads(path.read_text())
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as err:
-        raise UserError(f"{path}: not valid TOML ({err})") from None
-    where = str(path)
-    _table(raw, where, SPEC_KEYS, ("body",))
-    units = raw.get("units", "mm")
-    if units not in UNITS:
-        near = difflib.get_close_matches(str(units), UNITS, n=1)
-        raise UserError(f"{where}: units: expected one of mm, cm, m, got {units!r}" + (f"; did you mean {near[0]!r}?" if near else ""))
-    spec = {
-        "units": units,
-        "size": _positive(raw["size"], f"{where}: size") if "size" in raw else None,
-        "organ_size": _positive(raw["organ_size"], f"{where}: organ_size") if "organ_size" in raw else None,
-        "body": _body(raw["body"], f"{where}: body"),
-        "regions": _named(raw.get("regions", {}), f"{where}: regions", _region),
-        "cavities": _named(raw.get("cavities", {}), f"{where}: cavities", _cavity),
-        "patches": _named(raw.get("patches", {}), f"{where}: patches", _patch),
-    }
-    _unique_groups(spec, where)
-    shape = next(k for k in ("box", "ellipsoid") if spec["body"][k]) if not spec["body"]["surface"] else None
-    require(shape is None or spec["regions"] or spec["cavities"],
-            f"{where}: body.{shape} surrounds the regions and cavities, but there are none")
-    return spec
+    """The scene spec, checked and normalised by the one schema (config.py): every key
+    present (None where not given), region surfaces as lists of file names."""
+    return read_scene_spec(Path(path))
 
 
 # --------------------------------------------------------------------------- shells
 
 
-def _organ_shells(spec: dict, folder: Path, say) -> list[Shell]:
+def _organ_shells(spec: dict, folder: Path) -> list[Shell]:
     shells = []
     files = [("region", name, f) for name, r in spec["regions"].items() for f in r["surface"]]
     files += [("cavity", name, c["surface"]) for name, c in spec["cavities"].items()]
     for role, name, file in files:
         label = f"{'regions' if role == 'region' else 'cavities'}.{name} ({file})"
-        pieces = closed_shells(folder / file, label, role, name, say)
-        _describe(pieces, label, spec["units"], say)
+        pieces = closed_shells(folder / file, label, role, name)
+        _describe(pieces, label, spec["units"])
         shells += pieces
     return shells
 
 
-def _describe(pieces: list[Shell], label: str, units: str, say) -> None:
+def _describe(pieces: list[Shell], label: str, units: str) -> None:
     """One line per surface: what was kept, and its extent (a wrong unit shows here)."""
     low = np.min([p.bounds[0] for p in pieces], axis=0)
     high = np.max([p.bounds[1] for p in pieces], axis=0)
     extent = " x ".join(f"{v:.3g}" for v in high - low)
     count = sum(len(p.triangles) for p in pieces)
-    say(f"{label}: {len(pieces)} closed piece(s), {count} triangles, {extent} {units}")
+    log.info(f"{label}: {len(pieces)} closed piece(s), {count} triangles, {extent} {units}")
 
 
 def _outward(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
@@ -256,14 +130,14 @@ def ellipsoid_shell(organs: list[Shell], margin: float, material: str) -> Shell:
     raise RuntimeError("ellipsoid body: no scale keeps the margin")  # cannot happen: the gap grows with scale
 
 
-def _body_shell(spec: dict, folder: Path, organs: list[Shell], say) -> Shell:
+def _body_shell(spec: dict, folder: Path, organs: list[Shell]) -> Shell:
     body = spec["body"]
     material = body["material"]
     if body["surface"]:
         label = f"body ({body['surface']})"
-        pieces = closed_shells(folder / body["surface"], label, "body", material, say)
+        pieces = closed_shells(folder / body["surface"], label, "body", material)
         require(len(pieces) == 1, f"{label}: {len(pieces)} separate closed pieces; the body must be one")
-        _describe(pieces, label, spec["units"], say)
+        _describe(pieces, label, spec["units"])
         return pieces[0]
     inner = np.vstack([s.points for s in organs])
     if body["box"]:
@@ -272,7 +146,7 @@ def _body_shell(spec: dict, folder: Path, organs: list[Shell], say) -> Shell:
     else:
         shell = ellipsoid_shell(organs, body["ellipsoid"]["margin"], material)
     extent = " x ".join(f"{v:.3g}" for v in np.ptp(shell.points, axis=0))
-    say(f"{shell.label}: {extent} {spec['units']} around the organs")
+    log.info(f"{shell.label}: {extent} {spec['units']} around the organs")
     return shell
 
 
@@ -597,7 +471,7 @@ def problem_toml(spec: dict, shells: list[Shell], msh_name: str) -> str:
         f'units = "{spec["units"]}"',
         "degree = 2",
         "",
-        "# Young's moduli in any unit (kPa, say): with unknown boundary forces only the ratios",
+        "# Young's moduli in any unit (kPa, for one): with unknown boundary forces only the ratios",
         "# of E are identifiable, so one material (the body's) stays fixed as the reference.",
         "# Poisson's ratio 0.4: nearly incompressible soft tissue.",
     ]
@@ -630,12 +504,12 @@ def problem_toml(spec: dict, shells: list[Shell], msh_name: str) -> str:
 # --------------------------------------------------------------------------- the command
 
 
-def _note_coarse_organs(organs: list[Shell], organ_size: float, units: str, say) -> None:
+def _note_coarse_organs(organs: list[Shell], organ_size: float, units: str) -> None:
     """A note (not an error: gmsh copes) where an organ is under three elements thick."""
     for organ in organs:
         thickness = np.ptp(organ.points, axis=0).min()
         if organ_size > thickness / 3:
-            say(f"note: organ_size {organ_size:.3g} {units} is coarse for {organ.label} "
+            log.info(f"note: organ_size {organ_size:.3g} {units} is coarse for {organ.label} "
                 f"({thickness:.3g} {units} thick); its shape will be rough")
 
 
@@ -658,13 +532,13 @@ def _sizes(spec: dict, body: Shell, size: float | None) -> tuple[float, float]:
     return float(size), float(organ_size)
 
 
-def build_scene_from_spec(spec_path, out, size: float | None = None, say=print) -> Path:
+def build_scene_from_spec(spec_path, out, size: float | None = None) -> Path:
     """Read the spec and its surface files, repair and check them, and write
     ``out/scene.msh`` and ``out/problem.toml``; returns the problem.toml path."""
     spec_path, out = Path(spec_path), Path(out)
     spec = read_spec(spec_path)
-    organs = _organ_shells(spec, spec_path.parent, say)
-    body = _body_shell(spec, spec_path.parent, organs, say)
+    organs = _organ_shells(spec, spec_path.parent)
+    body = _body_shell(spec, spec_path.parent, organs)
     size, organ_size = _sizes(spec, body, size)
     check_mesh_cost(f"{spec_path.name}: size {size:g}, organ_size {organ_size:g}",
                     _expected_cells(body, organs, size, organ_size), 3, size)
@@ -677,11 +551,11 @@ def build_scene_from_spec(spec_path, out, size: float | None = None, say=print) 
             require((shells[0].patches >> p & 1).any(),
                     f"{spec_path}: patches.{patch.name}: no part of the outer boundary has (c - point) . normal > 0")
     units = spec["units"]
-    _note_coarse_organs(organs, organ_size, units, say)
-    say(f"meshing: element size {size:.3g} {units} in the body, {organ_size:.3g} {units} at the organs")
+    _note_coarse_organs(organs, organ_size, units)
+    log.info(f"meshing: element size {size:.3g} {units} in the body, {organ_size:.3g} {units} at the organs")
     counts = mesh_shells(shells, parents, patches, size, organ_size, out / "scene.msh")
     straight = f", {counts['kept_straight']} kept straight-sided" if counts["kept_straight"] else ""
-    say(f"{counts['tetrahedra']} quadratic tetrahedra (curved to the surfaces{straight}), "
+    log.info(f"{counts['tetrahedra']} quadratic tetrahedra (curved to the surfaces{straight}), "
         f"{counts['nodes']} nodes -> {out / 'scene.msh'}")
     problem = out / "problem.toml"
     problem.write_text(problem_toml(spec, shells, "scene.msh"))

@@ -32,6 +32,7 @@ import numpy as np
 
 from fenics_elasto.errors import UserError, require
 from fenics_elasto.surface import quiet_vtk
+from fenics_elasto.logs import log
 
 MERGE_TOLERANCE = 1e-7  # of the bounding-box diagonal
 SPECK_FRACTION = 0.01  # components under 1 % of the largest one's area are specks
@@ -145,7 +146,7 @@ def _components(triangles: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------- repairs
 
 
-def _merge_points(points, triangles, label, say):
+def _merge_points(points, triangles, label):
     import igl
 
     size = np.linalg.norm(np.ptp(points, axis=0))
@@ -155,35 +156,35 @@ def _merge_points(points, triangles, label, say):
     remap[used] = index
     duplicates = len(used) - len(merged)
     if duplicates:
-        say(f"{label}: merged {duplicates} duplicated points")
+        log.info(f"{label}: merged {duplicates} duplicated points")
     return merged, remap[triangles]
 
 
-def _drop_bad_triangles(triangles, label, say):
+def _drop_bad_triangles(triangles, label):
     collapsed = (triangles[:, 0] == triangles[:, 1]) | (triangles[:, 1] == triangles[:, 2]) | (triangles[:, 2] == triangles[:, 0])
     triangles = triangles[~collapsed]
     _, first = np.unique(row_keys(np.sort(triangles, axis=1)), return_index=True)
     duplicated = len(triangles) - len(first)
     if collapsed.any():
-        say(f"{label}: dropped {collapsed.sum()} collapsed triangles (a repeated corner)")
+        log.info(f"{label}: dropped {collapsed.sum()} collapsed triangles (a repeated corner)")
     if duplicated:
-        say(f"{label}: dropped {duplicated} duplicated triangles")
+        log.info(f"{label}: dropped {duplicated} duplicated triangles")
     return triangles[np.sort(first)]
 
 
-def _drop_specks(points, triangles, label, say):
+def _drop_specks(points, triangles, label):
     component = _components(triangles)
     area = np.bincount(component, weights=triangle_areas(points, triangles))
     specks = area < SPECK_FRACTION * area.max()
     if specks.any():
         sizes = np.bincount(component)[specks]
         count = f"{sizes.min()} triangles each" if sizes.min() == sizes.max() else f"{sizes.min()}-{sizes.max()} triangles"
-        say(f"{label}: dropped {specks.sum()} stray piece(s) ({count}, {100 * area[specks].sum() / area.sum():.2g} % "
+        log.info(f"{label}: dropped {specks.sum()} stray piece(s) ({count}, {100 * area[specks].sum() / area.sum():.2g} % "
             f"of the area; kept pieces of at least {100 * SPECK_FRACTION:g} % of the largest's)")
     return triangles[~specks[component]]
 
 
-def _orient_consistently(triangles, label, say):
+def _orient_consistently(triangles, label):
     import igl
 
     oriented, component = igl.bfs_orient(triangles)
@@ -191,7 +192,7 @@ def _orient_consistently(triangles, label, say):
     flipped = np.bincount(component, weights=_reversed(triangles, oriented))
     disagreeing = int(np.minimum(flipped, np.bincount(component) - flipped).sum())
     if disagreeing:
-        say(f"{label}: re-oriented {disagreeing} triangles to agree with their neighbours")
+        log.info(f"{label}: re-oriented {disagreeing} triangles to agree with their neighbours")
     _, count = np.unique(row_keys(directed_edges(oriented)), return_counts=True)
     require((count == 1).all(), f"{label}: not orientable (a Moebius-like piece); cannot make it a closed surface")
     return oriented
@@ -203,7 +204,7 @@ def _reversed(before: np.ndarray, after: np.ndarray) -> np.ndarray:
     return before[np.arange(len(before)), (position + 1) % 3] != after[:, 1]
 
 
-def _fill_holes(points, triangles, label, say):
+def _fill_holes(points, triangles, label):
     """Close each small hole with a fan from the centroid of its rim (the fan takes
     the orientation of the triangles around it)."""
     from scipy.sparse import coo_matrix
@@ -225,16 +226,16 @@ def _fill_holes(points, triangles, label, say):
     require(radius.max() <= limit, f"{label}: not a closed surface: an opening of radius {radius.max():.3g} "
             f"at {_point(centre[np.argmax(radius)])} (openings up to {limit:.3g}, 5 % of its size, are filled)")
     fan = np.c_[rim[:, 1], rim[:, 0], n + hole_of_edge]
-    say(f"{label}: filled {holes} hole(s) (largest radius {radius.max():.3g}, {len(rim)} rim edges)")
+    log.info(f"{label}: filled {holes} hole(s) (largest radius {radius.max():.3g}, {len(rim)} rim edges)")
     return np.vstack([points, centre]), np.vstack([triangles, fan])
 
 
-def _orient_outward(points, triangles, label, say):
+def _orient_outward(points, triangles, label):
     component = _components(triangles)
     inward = [c for c in range(component.max() + 1)
               if enclosed_volume(points, triangles[component == c]) < 0]
     if inward:
-        say(f"{label}: turned the inward-facing normals of {len(inward)} component(s) outward")
+        log.info(f"{label}: turned the inward-facing normals of {len(inward)} component(s) outward")
         flip = np.isin(component, inward)
         triangles = triangles.copy()
         triangles[flip] = triangles[flip][:, [0, 2, 1]]
@@ -260,22 +261,22 @@ def self_intersecting(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     return bad
 
 
-def closed_shells(path: Path, label: str, role: str, name: str, say=print) -> list[Shell]:
+def closed_shells(path: Path, label: str, role: str, name: str) -> list[Shell]:
     """The file's closed components, repaired (see the module docstring), outward."""
     points, triangles = read_triangles(path, label)
-    points, triangles = _merge_points(points, triangles, label, say)
-    triangles = _drop_bad_triangles(triangles, label, say)
+    points, triangles = _merge_points(points, triangles, label)
+    triangles = _drop_bad_triangles(triangles, label)
     require(len(triangles) > 0, f"{label}: no triangles left after dropping collapsed ones")
-    triangles = _drop_specks(points, triangles, label, say)
+    triangles = _drop_specks(points, triangles, label)
     edges, _, count = edge_use(triangles)
     require(count.max() <= 2, f"{label}: {np.sum(count > 2)} edges are shared by more than two triangles "
             f"(non-manifold, e.g. near {_point(points[edges[np.argmax(count)]].mean(axis=0))}); "
             "cannot make it a closed surface")
-    triangles = _orient_consistently(triangles, label, say)
-    points, triangles = _fill_holes(points, triangles, label, say)
+    triangles = _orient_consistently(triangles, label)
+    points, triangles = _fill_holes(points, triangles, label)
     _, _, count = edge_use(triangles)
     require((count == 2).all(), f"{label}: cannot be made a closed surface ({np.sum(count != 2)} edges not shared by two triangles)")
-    triangles, component = _orient_outward(points, triangles, label, say)
+    triangles, component = _orient_outward(points, triangles, label)
     shells = [_shell(role, name, label, points, triangles[component == c]) for c in range(component.max() + 1)]
     for shell in shells:  # one by one: a piece inside another sees winding number 2, rightly
         crossing = self_intersecting(shell.points, shell.triangles)

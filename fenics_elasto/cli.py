@@ -41,6 +41,9 @@ def _parser() -> argparse.ArgumentParser:
         p.add_argument("problem", type=Path)
         p.add_argument("--out", required=True, type=Path)
         p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a TOML value")
+        if name == "estimate":
+            p.add_argument("--check-mesh", action="store_true",
+                           help="also estimate on the source mesh split once on its geometry; report how far it moves")
 
     p = sub.add_parser("train", help="PCA force bases from example target surfaces")
     p.add_argument("problem", type=Path, nargs="?", help="the scene the --examples deform")
@@ -92,7 +95,7 @@ def _simulate(args) -> None:
 def _estimate(args) -> int:
     from fenics_elasto.commands import run_estimate
 
-    result = run_estimate(args.problem, args.out, args.set)
+    result = run_estimate(args.problem, args.out, args.set, args.check_mesh)
     return 130 if result["interrupted"] else 0
 
 

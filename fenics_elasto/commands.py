@@ -28,7 +28,8 @@ def run_mesh(name: str, out: Path, size=None, seed=None, atlas_mesh: Path | None
     and locked first; gmsh on rank 0. Returns the problem.toml path."""
     from mpi4py import MPI
 
-    from fenics_elasto.meshing import atlas_surfaces, build_scene
+    from fenics_elasto.atlas import atlas_surfaces
+    from fenics_elasto.meshing import build_scene
 
     def build():
         require(atlas_mesh is None or name == "prostate-phantom", "--atlas: only prostate-phantom takes an atlas")
@@ -46,7 +47,7 @@ def run_scene(spec: Path, out: Path, size=None) -> Path:
     from fenics_elasto.anatomy import build_scene_from_spec
 
     with prepare_folder(out):
-        return on_root(MPI.COMM_WORLD, lambda: build_scene_from_spec(spec, out, size, say=log.info))
+        return on_root(MPI.COMM_WORLD, lambda: build_scene_from_spec(spec, out, size))
 
 
 def run_simulate(problem_path: Path, out: Path, overrides=()) -> dict:
@@ -64,8 +65,9 @@ def run_simulate(problem_path: Path, out: Path, overrides=()) -> dict:
     return sim.result
 
 
-def run_estimate(problem_path: Path, out: Path, overrides=()):
-    """The ``estimate`` command: result.json, fields, surfaces, forces.csv, pictures."""
+def run_estimate(problem_path: Path, out: Path, overrides=(), check_mesh: bool = False):
+    """The ``estimate`` command: result.json, fields, surfaces, forces.csv, pictures;
+    ``check_mesh``: also on the source refined once, and how far the answer moved."""
     from fenics_elasto.estimate import estimate
     from fenics_elasto.objective import InverseProblem
     from fenics_elasto.scene import load_scene
@@ -79,12 +81,61 @@ def run_estimate(problem_path: Path, out: Path, overrides=()):
                  + f", {problem.observation.node_count} matched nodes"
                  + (f", {len(problem.misfit.landmark_rows())} landmarks" if len(problem.misfit.landmark_rows()) else ""))
         result = estimate(problem, basis=basis)
+        if check_mesh and not result["interrupted"]:
+            result.record["mesh_check"] = mesh_check(problem_path, folder.path, overrides, result, basis)
         with folder.writing(result.record):
             write_estimate(folder, problem, result)
     distance = result["surface_distance"]
     log.info(f"{title(result)}; rms distance {distance['rms']:.3g}, "
              f"{result['factorizations']} factorizations, {result['wall_time_s']:.1f} s -> {out}")
     return result
+
+
+def mesh_check(problem_path: Path, out: Path, overrides, result, basis) -> dict:
+    """The estimate again on the source split once on its geometry (refine.py), started
+    at the answer: how far it moves is what the source mesh still costs. Bases move to
+    the refined loaded nodes exactly (nested meshes)."""
+    import time
+
+    from fenics_elasto.estimate import Options, estimate
+    from fenics_elasto.objective import InverseProblem
+    from fenics_elasto.refine import refine_scene, transfer_bases
+    from fenics_elasto.scene import load_scene
+
+    start = time.perf_counter()
+    coarse = InverseProblem(load_scene(problem_path, overrides), target=False)
+    fine_path = refine_scene(problem_path, out / ".refined")
+    settings = list(overrides) + [("target", absolute_paths(coarse.scene, "target"))]
+    settings += [(f"materials.{m}.{k}.initial", float(v)) for (m, k), v in zip(coarse.params.names, result.theta)]
+    fine = InverseProblem(load_scene(fine_path, settings))
+    W = None if basis is None else transfer_bases(basis, coarse.scene, fine.scene)
+    options = Options.from_scene(fine.scene)
+    options.scan = 1  # started at the coarse answer: no scan of the bounds
+    log.info(f"mesh check: the estimate again on the source refined once ({fine.model.num_dofs} dofs)")
+    refined = estimate(fine, options, W)
+    change = {label: 100 * (refined.estimated[label] - value) / value for label, value in result.estimated.items()}
+    for label, moved in change.items():
+        if abs(moved) > 1.0:
+            result.record["warnings"].append(f"{label} moved {moved:+.1f} % on the source refined once: the source "
+                                             "mesh limits the accuracy; refine it (finer organ walls first)")
+            log.warning(result.record["warnings"][-1])
+    return {"refined_dofs": fine.model.num_dofs, "estimated": refined.estimated, "change_percent": change,
+            "seconds": round(time.perf_counter() - start, 1)}
+
+
+def absolute_paths(scene, table: str) -> dict:
+    """A table of the scene's config with its file names absolute (they are relative to
+    the problem file, which a derived scene elsewhere does not share)."""
+    base = scene.path.parent.resolve()
+
+    def fix(key, value):
+        if key in ("surface", "landmarks", "bases") and isinstance(value, str):
+            return str(base / value)
+        if key == "surfaces" and isinstance(value, dict):
+            return {g: str(base / f) for g, f in value.items()}
+        return value
+
+    return {k: fix(k, v) for k, v in (scene.config[table] or {}).items() if v is not None}
 
 
 def write_estimate(folder, problem, result) -> None:
@@ -110,7 +161,7 @@ def run_train(patients: list, out: Path, rank: int, atlas_mesh: Path | None = No
     """Bases from example targets: ``patients`` = [(problem.toml, [example, ...]), ...]
     (several only around an atlas), and/or from synthetic examples of the scene
     (``generator``: synthetic.Generator). Writes BASES.npz and its variance plot (.png)."""
-    from fenics_elasto.meshing import atlas_surfaces
+    from fenics_elasto.atlas import atlas_surfaces
     from fenics_elasto.objective import InverseProblem
     from fenics_elasto.reduction import train_atlas_bases, train_bases
     from fenics_elasto.scene import load_scene

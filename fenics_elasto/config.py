@@ -642,6 +642,42 @@ def read_toml(path: Path, what: str = "problem file") -> dict:
         raise UserError(f"{path}: not valid TOML ({err})") from None
 
 
+def toml_text(data: dict) -> str:
+    """``data`` -- tables, arrays, strings, numbers, booleans, as ``read_toml`` gives
+    them -- written back as TOML (comments are not kept: the dict has none)."""
+    lines: list[str] = []
+    _toml_table(data, (), lines)
+    return "\n".join(lines).lstrip("\n") + "\n"
+
+
+def _toml_table(table: dict, keys: tuple, lines: list) -> None:
+    values = [(k, v) for k, v in table.items() if not isinstance(v, dict)]
+    tables = [(k, v) for k, v in table.items() if isinstance(v, dict)]
+    if keys and (values or not tables):  # a header only where it holds values (or is empty)
+        lines += ["", "[" + ".".join(map(_toml_key, keys)) + "]"]
+    lines += [f"{_toml_key(k)} = {_toml_value(v)}" for k, v in values]
+    for k, v in tables:
+        _toml_table(v, keys + (k,), lines)
+
+
+def _toml_key(key: str) -> str:
+    return key if re.fullmatch(r"[A-Za-z0-9_-]+", key) else json.dumps(key)
+
+
+def _toml_value(value) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (int, float)):
+        return repr(value)  # inf and nan are TOML too
+    if isinstance(value, str):
+        return json.dumps(value)  # a JSON string is a TOML basic string
+    if isinstance(value, list):
+        return "[" + ", ".join(map(_toml_value, value)) + "]"
+    if isinstance(value, dict):
+        return "{" + ", ".join(f"{_toml_key(k)} = {_toml_value(v)}" for k, v in value.items()) + "}"
+    raise TypeError(f"no TOML form for {type(value).__name__}")
+
+
 def parse_override(text: str) -> tuple[list[str], object]:
     """``materials.prostate.E=50`` -> (["materials", "prostate", "E"], 50.0).
 
@@ -660,11 +696,18 @@ def parse_override(text: str) -> tuple[list[str], object]:
 
 
 def apply_overrides(config: dict, overrides, schema: Table = PROBLEM, source: str = "") -> dict:
-    """Set each ``KEY=VALUE`` in the raw ``config`` (in place), the key path checked
-    against ``schema``; returns {key path: override text} for ``validate_*``."""
+    """Set each override in the raw ``config`` (in place), the key path checked against
+    ``schema``; returns {key path: override text} for ``validate_*``.
+
+    An override is ``"KEY=VALUE"`` text (``--set``), or from Python a (dotted key, value)
+    pair -- ``overrides`` may be a dict of them: ``{"materials.prostate.E": 50.0}``.
+    """
     overridden = {}
-    for text in overrides:
-        keys, value = parse_override(text)
+    for item in (overrides.items() if isinstance(overrides, dict) else overrides):
+        if isinstance(item, str):
+            text, (keys, value) = item, parse_override(item)
+        else:
+            text, keys, value = f"{item[0]}={item[1]!r}", item[0].split("."), item[1]
         _set(config, keys, value, schema, Where(f"{source} (--set {text!r})" if source else f"--set {text!r}"))
         overridden[tuple(keys)] = text
     return overridden

@@ -1,4 +1,4 @@
-"""The nested estimate (method.md §4): materials outside, boundary controls inside.
+"""The nested estimate (docs/method.md §5): materials outside, boundary controls inside.
 
 The outer loop minimises the profile Phi*(theta) (functional.py) over the estimated
 constants in s = (log E, nu) with bounded L-BFGS-B and the envelope gradient. Start:
@@ -17,22 +17,22 @@ can represent.
 
 from __future__ import annotations
 
-import itertools
 import time
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import minimize
 from scipy.spatial import cKDTree
 
 from fenics_elasto.errors import UserError, require
-from fenics_elasto.functional import Profile, SurrogateProfile
+from fenics_elasto.functional import Profile, SurrogateProfile, minimize_on_surrogate, minimize_profile
 from fenics_elasto.logs import log
 from fenics_elasto.inner import GaussNewton, InnerResult, LBFGS
 from fenics_elasto.interrupts import Interrupted
 from fenics_elasto.matching import match_surface
 from fenics_elasto.misfit import SurfaceTerm
 from fenics_elasto.objective import Evaluation, InverseProblem
+from fenics_elasto.posterior import Posterior, posterior_at
+from fenics_elasto.reduction import bases_fit
 from fenics_elasto.surrogate import MaterialSurrogate
 
 
@@ -42,7 +42,7 @@ class Options:
     inner_maxiter: int = 400
     outer_maxiter: int = 40
     outer_xtol: float = 1e-3  # the outer loop stops once a step moves log E by less (nu: a tenth of it)
-    scan: int = 5  # material values per estimated constant in the initial scan
+    scan: int = 5  # material values per estimated constant in the initial scan (1: the initial values only)
     inner_tol: float = 1e-6  # relative decrease of Phi that ends an L-BFGS inner loop (Gauss-Newton: its square)
     full_gn_limit: int = 1500  # largest full force space for which "auto" picks Gauss-Newton
     anchor: float = 1e-4  # Gauss-Newton prior towards the surface-matched start, relative to the data curvature
@@ -142,6 +142,22 @@ def _nodes_in(problem, nodes, other) -> np.ndarray:
 # --------------------------------------------------------------------------- the estimate
 
 
+def surface_matched_start(problem: InverseProblem) -> np.ndarray:
+    """The loaded nodes' displacement that surface matching finds (flat): matched nodes
+    moved onto their target surfaces (landmarks only: each takes its nearest landmark's
+    displacement); loaded nodes that are not matched stay put."""
+    term = problem.misfit.terms[0]
+    nodes = problem.matched_coords
+    if isinstance(term, SurfaceTerm):
+        u = match_surface(nodes, problem.node_groups(), term)
+    else:
+        rows = problem.misfit.landmark_rows()
+        moved = problem.misfit.terms[-1].points - problem.observation.points[rows]
+        u = moved[cKDTree(problem.observation.points[rows]).query(nodes)[1]]
+    return problem.forward.on_loaded(problem.observation.node_field(u))
+
+
+
 class Estimator:
     """The nested optimisation of one InverseProblem, optionally in a reduced basis W."""
 
@@ -151,11 +167,12 @@ class Estimator:
         self.options = options
         self.basis = basis  # W (force_dofs x r) or None: the full space
         self.inner_name = self._choose_inner()
-        self.d0 = self.start_displacement()
+        self.d0 = surface_matched_start(problem)
         surrogate = MaterialSurrogate(problem, basis) if basis is not None and options.surrogate else None
         self.profile = Profile(problem, self._inner(), basis, surrogate, same_within=1e-3 * options.outer_xtol)
         self.surrogate = SurrogateProfile(self.profile) if surrogate is not None else None
         self.outer_iterations = 0
+        self.warnings: list[str] = []
 
     def _choose_inner(self) -> str:
         inner = self.options.inner
@@ -178,95 +195,50 @@ class Estimator:
 
     # --- start
 
-    def start_displacement(self) -> np.ndarray:
-        """The loaded nodes' displacement that surface matching finds (flat): matched nodes
-        moved onto their target surfaces (landmarks only: each takes its nearest
-        landmark's displacement); loaded nodes that are not matched stay put."""
-        p = self.problem
-        term = p.misfit.terms[0]
-        nodes = p.matched_coords
-        if isinstance(term, SurfaceTerm):
-            u = match_surface(nodes, p.node_groups(), term)
-        else:
-            rows = p.misfit.landmark_rows()
-            moved = p.misfit.terms[-1].points - p.observation.points[rows]
-            u = moved[cKDTree(p.observation.points[rows]).query(nodes)[1]]
-        return p.forward.on_loaded(p.observation.node_field(u))
-
     def initial_controls(self, theta) -> np.ndarray:
         if self.inner_name == "lbfgs-forces":
             return self.problem.forward.reaction_forces(theta, self.problem.forward.from_boundary(theta, self.d0))
         return self.d0 if self.basis is None else self.basis.T @ self.d0
 
-    def scan_points(self) -> list[np.ndarray]:
-        axes = []
-        for (lo, hi), is_E in zip(self.params.bounds, self.params.is_E):
-            n = self.options.scan if len(self.params) == 1 else max(2, min(self.options.scan, 3))
-            q = (np.arange(n) + 0.5) / n
-            axes.append(np.exp(np.log(lo) + q * (np.log(hi) - np.log(lo))) if is_E else lo + q * (hi - lo))
-        return [np.array(point) for point in itertools.product(*axes)]
-
     # --- the loop
 
     def run(self) -> None:
-        points = self.scan_points()
-        if self.surrogate is None:
+        """Scan, check the data determine the materials, minimise Phi*, polish."""
+        n = self.options.scan if len(self.params) == 1 else max(2, min(self.options.scan, 3))
+        points = self.params.scan(n) if self.options.scan > 1 else []  # scan = 1: the initial values only
+        if self.surrogate is None or not points:
             points = [self.params.initial] + points
         log.info(f"scan of {len(points)} material values (start: surface matching; inner: {self.inner_name})")
         for theta in points:
             self.profile.solve(theta, "scan", self._start_for(theta))
+        self.check_identifiable()
+        xtol = self.options.outer_xtol * np.where(self.params.is_E, 1.0, 0.1)
         if self.surrogate is None:
-            self.outer_solved()
+            self.outer_iterations = minimize_profile(self.profile, xtol, self.options.outer_maxiter)
         else:
-            self.outer_on_surrogate()
+            self.outer_iterations = minimize_on_surrogate(self.profile, self.surrogate, xtol, self.options.outer_maxiter)
         self.polish()
+
+    def posterior(self, result: InnerResult | None = None) -> Posterior | None:
+        noise = (self.problem.scene.config["target"] or {}).get("noise")
+        return posterior_at(self.profile, result or self.profile.best(), noise)
+
+    def check_identifiable(self) -> None:
+        """After the scan: a constant whose 95 % interval (at the best scan value) is wider
+        than its bounds is not determined by the data -- end now, not after the whole run."""
+        post = self.posterior()
+        undetermined = [] if post is None else post.undetermined(self.params.s_bounds())
+        if not undetermined:
+            return
+        message = (f"{self.problem.scene.path}: the data do not determine {', '.join(undetermined)}: its 95 % "
+                   f"interval at the best scan value is wider than its bounds; fix it, or add data that see it "
+                   f"(landmarks inside the body, more matched surfaces), or set optimizer.allow_undetermined = true")
+        if not self.options.allow_undetermined:
+            raise UserError(message)
+        self.warnings.append("undetermined (allow_undetermined = true): " + message.split(": ", 1)[1].split("; fix")[0])
 
     def _start_for(self, theta):
         return None if self.inner_name == "gauss-newton" else self.initial_controls(theta)
-
-    def xtol(self) -> np.ndarray:
-        return self.options.outer_xtol * np.where(self.params.is_E, 1.0, 0.1)
-
-    def outer_solved(self) -> None:
-        """L-BFGS-B over the materials, every value solved in full."""
-        scale = max(self.profile.best().value, 1e-300)
-        last = {"s": self.params.to_s(self.profile.best_theta())}
-
-        def objective(s):
-            value, grad = self.profile.value_and_gradient(s)
-            return value / scale, grad / scale
-
-        def settle(intermediate_result):
-            self.outer_iterations += 1
-            settled = np.all(np.abs(intermediate_result.x - last["s"]) < self.xtol())
-            last["s"] = intermediate_result.x.copy()
-            if settled:
-                raise StopIteration  # more digits of E would cost factorizations, not accuracy
-
-        log.info("outer L-BFGS-B over the materials (envelope gradient)")
-        minimize(objective, last["s"], jac=True, method="L-BFGS-B", bounds=self.params.s_bounds(), callback=settle,
-                 options={"maxiter": self.options.outer_maxiter, "ftol": 1e-12, "gtol": 1e-9})
-
-    def outer_on_surrogate(self) -> None:
-        """Optimise the materials on the surrogate, solve its optimum in full (a new
-        snapshot), repeat until the optimum lands where a full solve already is."""
-        log.info(f"outer L-BFGS-B on the reduced-basis response in the materials "
-                 f"({self.profile.surrogate.size} directions)")
-        def scaled(s, scale):
-            value, gradient = self.surrogate.value_and_gradient(s)
-            return value / scale, gradient / scale
-
-        for _ in range(self.options.outer_maxiter):
-            res = minimize(scaled, self.params.to_s(self.profile.best_theta()), args=(max(self.profile.best().value, 1e-300),),
-                           jac=True, method="L-BFGS-B",
-                           bounds=self.params.s_bounds(), options={"maxiter": 100, "ftol": 1e-14, "gtol": 1e-10})
-            self.outer_iterations += 1
-            theta = self.params.to_theta(res.x)
-            log.info(f"  surrogate optimum {self.params.describe(theta)}  (equation residual "
-                     f"{self.profile.surrogate.residual(theta):.1e}, {res.nfev} evaluations)")
-            if any(np.all(np.abs(res.x - s) < self.xtol()) for s, _, _ in self.profile.solved):
-                return
-            self.profile.solve(theta, "outer")
 
     def polish(self) -> None:
         """An L-BFGS inner solve warm-started along the path may stop above the inner
@@ -290,16 +262,6 @@ class Estimator:
             return theta, best, best.controls
         return theta, best, forward.reaction_forces(theta, best.evaluation.u)
 
-    def bases_fit(self) -> dict | None:
-        """How much of the wall motion surface matching finds the bases can represent:
-        |W W^T d0|^2 / |d0|^2 (1: all of it)."""
-        if self.basis is None:
-            return None
-        d0 = self.d0
-        kept = self.basis @ (self.basis.T @ d0)
-        total = float(d0 @ d0)
-        explained = float(kept @ kept) / total if total > 0 else 1.0
-        return {"wall_motion_explained": explained}
 
 
 def estimate(problem: InverseProblem, options: Options | None = None, basis: np.ndarray | None = None) -> EstimateResult:
@@ -324,11 +286,25 @@ def estimate(problem: InverseProblem, options: Options | None = None, basis: np.
         interrupted = True
         log.info("interrupted: writing the best result so far")
     theta, best, forces = estimator.final()
-    warnings += _warnings(estimator, theta, interrupted) + _target_warnings(problem, best)
+    warnings += estimator.warnings + _warnings(estimator, theta, interrupted) + _target_warnings(problem, best)
     for text in warnings:
         log.warning(text)
     record = _record(estimator, theta, best, phi_undeformed, warnings, interrupted, start)
+    post = estimator.posterior(best)
+    record["uncertainty"] = post.record() if post is not None else {
+        "note": f"not computed: the {estimator.inner_name} inner solver gives no response of the controls "
+                "(use reduced bases, or inner = \"gauss-newton\")"}
+    if post is not None:
+        for line in describe_uncertainty(post, theta):
+            log.info(line)
+    record["wall_time_s"] = round(time.perf_counter() - start, 3)
     return EstimateResult(theta, list(problem.params.labels), best.evaluation.u, forces, best.evaluation, record)
+
+
+def describe_uncertainty(post: Posterior, theta) -> list[str]:
+    """``prostate.E = 48.6 ± 1.9 (95 %: 45.0-52.4)`` per estimated constant."""
+    return [f"{label} = {value:.4g} ± {sd:.2g} (95 %: {lo:.4g}-{hi:.4g})"
+            for label, value, sd, (lo, hi) in zip(post.labels, theta, post.std(), post.interval())]
 
 
 def _warnings(estimator: Estimator, theta, interrupted: bool) -> list[str]:
@@ -340,7 +316,7 @@ def _warnings(estimator: Estimator, theta, interrupted: bool) -> list[str]:
     for label, value, (lo, hi) in zip(estimator.params.labels, theta, estimator.params.bounds):
         if np.isclose(value, lo, rtol=1e-3) or np.isclose(value, hi, rtol=1e-3):
             out.append(f"{label} = {value:.4g} is at its bound [{lo:g}, {hi:g}]: widen the bounds or check the set-up")
-    fit = estimator.bases_fit()
+    fit = bases_fit(estimator.basis, estimator.d0)
     if fit is not None and fit["wall_motion_explained"] < 0.9:
         out.append(f"the bases explain {100 * fit['wall_motion_explained']:.0f} % of the wall motion surface "
                    "matching finds; train with more or other examples (e.g. --synthetic)")
@@ -404,7 +380,7 @@ def _record(estimator: Estimator, theta, best: InnerResult, phi_undeformed, warn
         "dofs": problem.model.num_dofs,
         "force_dofs": problem.force_dofs,
         "rank": None if estimator.basis is None else int(estimator.basis.shape[1]),
-        "bases_fit": estimator.bases_fit(),
+        "bases_fit": bases_fit(estimator.basis, estimator.d0),
         "inner_solver": estimator.inner_name,
         "match_nodes": "vertices" if problem.observation.vertices_only else "all",
         "degree": problem.scene.degree,

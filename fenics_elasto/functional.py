@@ -1,4 +1,4 @@
-"""The profile functional Phi*(theta) = min over the boundary controls (method.md §4).
+"""The profile functional Phi*(theta) = min over the boundary controls (docs/method.md §5).
 
 Phi* is what the outer loop minimises over the materials, in s = (log E, nu). Two
 implementations behind one interface, ``value_and_gradient(s)``:
@@ -15,17 +15,48 @@ For a clean function of theta the Gauss-Newton fit always starts from the same
 surface-matched controls q0 (no path dependence through warm starts), runs to a
 tight tolerance, and the prior it adds is in the value as in the gradient. By the
 envelope theorem dPhi*/dtheta is the partial derivative at the inner optimum.
+
+``linearise`` gives what the Gauss-Newton Hessian of Phi* needs (posterior.py): the
+residual's Jacobians in the controls and in s, weighted by the exact closest-feature
+curvature, at an inner optimum.
 """
 
 from __future__ import annotations
 
 
+from dataclasses import dataclass
+
 import numpy as np
+from scipy.optimize import minimize
 
 from fenics_elasto.logs import log
 from fenics_elasto.inner import GaussNewton, InnerResult
 from fenics_elasto.interrupts import check_interrupt
 
+
+
+@dataclass
+class Linearisation:
+    """The weighted residual e = sqrt(w) C r at an inner optimum and its Jacobians:
+    the Gauss-Newton Hessian of Phi in (q, s) is [A_q A_s]^T [A_q A_s] + diag(prior, 0)."""
+
+    residual: np.ndarray  # (m,)
+    A_q: np.ndarray  # (m, p) in the controls
+    A_s: np.ndarray  # (m, n_theta) in s = (log E, nu)
+    prior: float  # alpha: the prior's curvature on every control
+    informative: int  # residual components the target constrains (1 per surface point on a face, ...)
+
+
+def linearise(problem, theta, result: InnerResult, J: np.ndarray, dy_dtheta: np.ndarray, alpha: float) -> Linearisation:
+    """The Linearisation at theta from the controls' response J (n, gdim, p) and the
+    observed positions' derivative in theta at fixed controls (n, gdim, n_theta)."""
+    rows = problem.misfit.gauss_newton_rows(result.evaluation.y)  # (n, gdim, gdim): sqrt(w) C
+    weighted = np.einsum("lkd,ld->lk", rows, result.evaluation.residual).ravel()
+    A_q = np.einsum("lkd,ldr->lkr", rows, J).reshape(len(weighted), -1)
+    A_theta = np.einsum("lkd,ldr->lkr", rows, dy_dtheta).reshape(len(weighted), -1)
+    A_s = A_theta * problem.params.dtheta_ds(theta)
+    informative = int(np.sum(np.linalg.norm(rows, axis=2) > 0))
+    return Linearisation(weighted, A_q, A_s, alpha, informative)
 
 
 class Profile:
@@ -39,6 +70,7 @@ class Profile:
         self.surrogate = surrogate  # fed with the mode fields of every solve
         self.same_within = same_within
         self.solved: list[tuple[np.ndarray, InnerResult, str]] = []  # (s, result, stage)
+        self.linearisations: dict[int, Linearisation] = {}  # id(result) -> at that solve (Gauss-Newton)
         self.inner_iterations = 0
         self.unconverged = 0
 
@@ -71,6 +103,10 @@ class Profile:
         self.inner_iterations += result.iterations
         self.unconverged += not result.converged
         self.solved.append((s, result, stage))
+        if result.response is not None:  # n_theta back-solves on the factorization at hand
+            dy = self.problem.observation.rows(self.problem.forward.field_derivative(theta, result.evaluation.u))
+            self.linearisations[id(result)] = linearise(self.problem, theta, result, result.response, dy, self.inner.alpha)
+            result.response = None  # kept in the linearisation only
         log.info(f"  {stage:5s} {self.params.describe(theta)}  Phi* = {result.value:.6e}  "
                  f"({result.iterations} inner iterations{'' if result.converged else ', NOT converged'})")
         return result
@@ -84,6 +120,9 @@ class Profile:
 
     def best(self) -> InnerResult:
         return min((result for _, result, _ in self.solved), key=lambda r: r.value)
+
+    def linearisation(self, result: InnerResult) -> Linearisation | None:
+        return self.linearisations.get(id(result))
 
     def best_theta(self) -> np.ndarray:
         s, _, _ = min(self.solved, key=lambda item: item[1].value)
@@ -112,3 +151,54 @@ class SurrogateProfile:
         g = self.fit_inner.misfit.gradient(fit.residual)
         grad_theta = np.array([np.sum(g * (dJk @ fit.q)) for dJk in dJ])
         return fit.phi + fit.prior, grad_theta * self.params.dtheta_ds(theta)
+
+
+# --------------------------------------------------------------------------- the outer loop
+
+
+def minimize_profile(profile: Profile, xtol: np.ndarray, maxiter: int) -> int:
+    """L-BFGS-B over s from the best solved value, every value solved in full; stops once
+    a step moves every constant by less than ``xtol`` (more digits of E would cost
+    factorizations, not accuracy). Returns the iterations."""
+    params = profile.params
+    scale = max(profile.best().value, 1e-300)  # L-BFGS-B's tolerances are absolute below 1
+    last = {"s": params.to_s(profile.best_theta()), "iterations": 0}
+
+    def objective(s):
+        value, grad = profile.value_and_gradient(s)
+        return value / scale, grad / scale
+
+    def settle(intermediate_result):
+        last["iterations"] += 1
+        settled = np.all(np.abs(intermediate_result.x - last["s"]) < xtol)
+        last["s"] = intermediate_result.x.copy()
+        if settled:
+            raise StopIteration
+
+    log.info("outer L-BFGS-B over the materials (envelope gradient)")
+    minimize(objective, last["s"], jac=True, method="L-BFGS-B", bounds=params.s_bounds(), callback=settle,
+             options={"maxiter": maxiter, "ftol": 1e-12, "gtol": 1e-9})
+    return last["iterations"]
+
+
+def minimize_on_surrogate(profile: Profile, surrogate: SurrogateProfile, xtol: np.ndarray, maxiter: int) -> int:
+    """Optimise s on the surrogate, solve its optimum in full (a new snapshot), repeat
+    until the optimum lands where a full solve already is. Returns the rounds."""
+    params = profile.params
+    log.info(f"outer L-BFGS-B on the reduced-basis response in the materials ({profile.surrogate.size} directions)")
+
+    def scaled(s, scale):
+        value, gradient = surrogate.value_and_gradient(s)
+        return value / scale, gradient / scale
+
+    for rounds in range(1, maxiter + 1):
+        res = minimize(scaled, params.to_s(profile.best_theta()), args=(max(profile.best().value, 1e-300),),
+                       jac=True, method="L-BFGS-B", bounds=params.s_bounds(),
+                       options={"maxiter": 100, "ftol": 1e-14, "gtol": 1e-10})
+        theta = params.to_theta(res.x)
+        log.info(f"  surrogate optimum {params.describe(theta)}  (equation residual "
+                 f"{profile.surrogate.residual(theta):.1e}, {res.nfev} evaluations)")
+        if any(np.all(np.abs(res.x - s) < xtol) for s, _, _ in profile.solved):
+            return rounds
+        profile.solve(theta, "outer")
+    return maxiter

@@ -1,4 +1,4 @@
-"""Inner problems: the boundary controls at fixed materials (method.md §4).
+"""Inner problems: the boundary controls at fixed materials (docs/method.md §5).
 
 Every solver returns an ``InnerResult`` with the optimum's full evaluation, gradients
 included (the envelope theorem makes dPhi*/dtheta the partial derivative there).
@@ -32,6 +32,7 @@ class InnerResult:
     iterations: int
     converged: bool
     prior: float = 0.0  # alpha/2 |q - q0|^2 at the optimum
+    response: np.ndarray | None = None  # J (n, gdim, p) of the controls, where the solver had it
 
     @property
     def value(self) -> float:
@@ -106,10 +107,11 @@ class GaussNewton:
 
     def solve(self, theta, response, basis) -> InnerResult:
         """The inner optimum at theta for the response J = ``response(theta)``, evaluated in full."""
-        fit = self.fit(response(theta))
+        J = response(theta)
+        fit = self.fit(J)
         d = fit.q if basis is None else basis @ fit.q
         ev = self.problem.evaluate_displacement(theta, d, gradient=True)
-        return InnerResult(fit.q, ev, fit.iterations, fit.converged, fit.prior)
+        return InnerResult(fit.q, ev, fit.iterations, fit.converged, fit.prior, J)
 
 
 class LBFGS:

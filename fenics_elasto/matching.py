@@ -13,8 +13,6 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from fenics_elasto.misfit import SurfaceTerm
-from fenics_elasto.surface import Surface, quadratic_edges
 
 
 def neighbours(points: np.ndarray, groups: np.ndarray, k: int = 6) -> np.ndarray:
@@ -52,24 +50,3 @@ def match_surface(points, groups, target, iterations: int = 60, k_data: float = 
         r = target.residual(points + u)
         u += -k_data * r + k_n * (u[nbrs].mean(axis=1) - u)
     return u
-
-
-def fit_surfaces(template: dict, onto: dict) -> dict:
-    """Each template triangulation (group -> (points, triangles: 3 or 6 nodes)) with its
-    vertices surface-matched onto the same group of ``onto``; the triangles are kept
-    and the midpoint nodes of 6-node triangles go to the middle of their moved edges."""
-    names = list(template)
-    vertices = {g: np.unique(template[g][1][:, :3]) for g in names}
-    points = np.concatenate([template[g][0][vertices[g]] for g in names])
-    groups = np.repeat(np.arange(len(names)), [len(vertices[g]) for g in names])
-    target = SurfaceTerm([Surface(onto[g][0], onto[g][1][:, :3]) for g in names], groups)
-    moved = points + match_surface(points, groups, target)
-    fitted = {}
-    for i, g in enumerate(names):
-        positions, triangles = template[g][0].copy(), template[g][1]
-        positions[vertices[g]] = moved[groups == i]
-        if triangles.shape[1] == 6:
-            pairs, middle = quadratic_edges(triangles)
-            positions[middle] = positions[pairs].mean(axis=1)
-        fitted[g] = (positions, triangles)
-    return fitted

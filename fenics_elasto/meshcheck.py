@@ -16,13 +16,10 @@ body with its boundary groups on it:
 - every node lies on a cell (no orphans: a node of nothing is a dangling DOF);
 - every element of a facet group is a facet of a cell, of the cells' order.
 
-``gmsh_errors`` collects what gmsh logs as errors (a truncated file is "read" with an
-error in the log, not an exception, under our options).
+(gmsh_models.py reads gmsh's log of errors; this module looks at what it made.)
 """
 
 from __future__ import annotations
-
-from contextlib import contextmanager
 
 import numpy as np
 
@@ -30,42 +27,6 @@ from fenics_elasto.anatomy_repair import row_keys
 from fenics_elasto.errors import UserError, require
 
 FLAT = 1e-10  # a cell whose measure is below this fraction of (mean edge)^dim is flat
-
-
-@contextmanager
-def gmsh_errors():
-    """Collect gmsh's logged errors (and a raised one) into the yielded list; the
-    list is filled when the block ends."""
-    import gmsh
-
-    errors: list[str] = []
-    gmsh.logger.start()
-    try:
-        yield errors
-    except Exception as err:  # gmsh raises a bare Exception carrying its last error
-        errors.append(str(err))
-    finally:
-        try:
-            logged = gmsh.logger.get()
-        except UnicodeDecodeError:  # gmsh quotes what it could not parse: bytes of a binary file
-            logged = ["Error: unreadable bytes (not a text or binary .msh?)"]
-        errors[:0] = [line.removeprefix("Error: ") for line in logged if line.startswith("Error")]
-        gmsh.logger.stop()
-
-
-def read_msh_file(gmsh, path) -> None:
-    """Merge a gmsh .msh file into the current model; anything else, or what gmsh
-    reports as an error while reading it: one line naming the file."""
-    from pathlib import Path
-
-    path = Path(path)
-    require(path.is_file(), f"{path}: no such mesh file")
-    with open(path, "rb") as f:
-        head = f.read(11)
-    require(head == b"$MeshFormat", f"{path}: not a gmsh .msh file (it does not begin with $MeshFormat)")
-    with gmsh_errors() as errors:
-        gmsh.merge(str(path))
-    require(not errors, f"{path}: gmsh cannot read it ({errors[0] if errors else ''})")
 
 
 def _elements(gmsh, dim: int, tag: int) -> list[tuple[int, np.ndarray]]:

@@ -1,4 +1,4 @@
-"""Built-in scenes: gmsh meshes plus a ready ``problem.toml``.
+"""Built-in scenes: gmsh meshes plus a ready ``problem.toml`` (templates in ``meshes/*.toml``).
 
 The 2D scenes are gmsh ``.geo`` sources in ``meshes/``; the prostate phantom is built
 with gmsh's OpenCASCADE kernel here because ``--seed`` varies its organs.
@@ -6,191 +6,18 @@ with gmsh's OpenCASCADE kernel here because ``--seed`` varies its organs.
 
 from __future__ import annotations
 
-import re
 from pathlib import Path
+from string import Template
 
 import numpy as np
-from scipy.spatial import cKDTree
 
+from fenics_elasto.atlas import fit_surfaces, mesh_inside, onto_geometry
 from fenics_elasto.budget import CELLS_PER_VOLUME, check_mesh_cost
-from fenics_elasto.errors import UserError, require
-from fenics_elasto.matching import fit_surfaces
-from fenics_elasto.meshcheck import check_mesh, gmsh_errors, read_msh_file
-from fenics_elasto.scene import fresh_gmsh_model, gmsh_facet_groups
-from fenics_elasto.surface import quadratic_edges
+from fenics_elasto.errors import require
+from fenics_elasto.gmsh_models import GmshModel, MeshingFailed, generate, node_positions, physical_surfaces, write_msh
 
 GEO_DIR = Path(__file__).parent / "meshes"
 SCENES = ("letter-a", "cantilever", "inclusion", "prostate-phantom")
-PHANTOM_LOADED = ("bladder", "rectum")  # the phantom's loaded groups (see PHANTOM_TOML)
-
-
-class GmshModel:
-    """A fresh gmsh model with default options (they are global and would leak
-    from one scene to the next), cleared again on exit."""
-
-    def __init__(self, name: str):
-        self.name = name
-
-    def __enter__(self):
-        return fresh_gmsh_model(self.name)
-
-    def __exit__(self, *exc):
-        import gmsh
-
-        gmsh.clear()
-
-
-def _generate(gmsh, path: Path, dim: int) -> None:
-    """Mesh up to ``dim``. gmsh may log an error and leave a dimension empty (a surface
-    mesh that overlaps itself: no tetrahedra) without raising: that is a failure too,
-    named by the group of the surface gmsh blames."""
-    with gmsh_errors() as errors:
-        gmsh.model.mesh.generate(dim)
-    if errors or not sum(len(t) for t in gmsh.model.mesh.getElements(dim)[1]):
-        cause = (errors or ["no elements"])[-1]
-        groups = _blamed(gmsh, cause)
-        raise MeshingFailed(f"gmsh could not mesh {path.name} at this size ({cause}"
-                            f"{': ' + ', '.join(groups) if groups else ''}); try another --size", groups)
-
-
-class MeshingFailed(UserError):
-    """gmsh failed; ``groups``: the physical groups of the surfaces it blames."""
-
-    def __init__(self, message: str, groups: list[str]):
-        super().__init__(message)
-        self.groups = groups
-
-
-def _blamed(gmsh, message: str) -> list[str]:
-    """The physical groups of the surfaces or curves a gmsh message names."""
-    names = set()
-    for word, dim in (("surface", 2), ("curve", 1)):
-        for tag in map(int, re.findall(rf"{word} (\d+)", message, flags=re.IGNORECASE)):
-            names |= {gmsh.model.getPhysicalName(dim, g) for g in gmsh.model.getPhysicalGroupsForEntity(dim, tag)}
-    return sorted(names - {""})
-
-
-def _write_msh(gmsh, path: Path, dim: int) -> None:
-    _generate(gmsh, path, dim)
-    _save(gmsh, path)
-
-
-def _save(gmsh, path: Path) -> None:
-    """Check the mesh as a scene reader will (meshcheck.py), then write it."""
-    check_mesh(gmsh, f"{path.name} as meshed", max(d for d, _ in gmsh.model.getPhysicalGroups()))
-    path.parent.mkdir(parents=True, exist_ok=True)
-    gmsh.option.setNumber("Mesh.MshFileVersion", 4.1)
-    gmsh.option.setNumber("Mesh.SaveAll", 0)
-    gmsh.write(str(path))
-
-
-def _node_positions(gmsh) -> np.ndarray:
-    """Coordinates of every node of the current gmsh mesh, indexed by node tag."""
-    tags, coords, _ = gmsh.model.mesh.getNodes()
-    position = np.zeros((int(tags.max()) + 1, 3))
-    position[tags] = coords.reshape(-1, 3)
-    return position
-
-
-def physical_surfaces(gmsh) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """Every facet group of the current 3D gmsh mesh as (points, triangles), the
-    points numbered per group in node-tag order."""
-    position = _node_positions(gmsh)
-    surfaces = {}
-    for name, rows in gmsh_facet_groups(gmsh, 3).items():
-        used, local = np.unique(rows + 1, return_inverse=True)
-        surfaces[name] = (position[used], local.reshape(rows.shape))
-    return surfaces
-
-
-def read_surfaces(msh: Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """The facet groups of a 3D .msh file as (points, triangles); a file that is not a
-    sound 3D mesh (meshcheck.py): one line."""
-    with GmshModel("surfaces") as gmsh:
-        read_msh_file(gmsh, msh)
-        require(gmsh.model.getPhysicalGroups(3), f"{msh}: not a 3D mesh with physical groups")
-        check_mesh(gmsh, str(msh), 3)
-        return physical_surfaces(gmsh)
-
-
-def atlas_surfaces(msh: Path, groups=PHANTOM_LOADED) -> dict:
-    """An atlas for ``build_prostate_phantom(atlas=...)``: a mesh's loaded surfaces."""
-    surfaces = read_surfaces(msh)
-    missing = [g for g in groups if g not in surfaces]
-    require(not missing, f"{msh}: no facet group(s) {', '.join(missing)} to serve as the atlas")
-    return {g: surfaces[g] for g in groups}
-
-
-def _onto_geometry(gmsh, faces: list[int], points: np.ndarray) -> np.ndarray:
-    """Each point moved to the closest point of the CAD faces (not of their mesh, whose
-    facets cut inside curved organs: a node there would be a fake displacement)."""
-    candidates = np.stack([np.reshape(gmsh.model.getClosestPoint(2, f, points.ravel())[0], (-1, 3)) for f in faces])
-    nearest = np.argmin(np.linalg.norm(candidates - points, axis=2), axis=0)
-    return candidates[nearest, np.arange(len(points))]
-
-
-def _mesh_inside(gmsh, surfaces: dict, volumes: dict, path: Path) -> None:
-    """Tetrahedralise the volumes bounded by given triangulated surfaces, keeping those
-    triangles -- vertices, and the midpoint nodes of 6-node triangles -- exactly: a
-    new model of discrete surfaces, meshed inside, then made quadratic.
-
-    ``volumes``: name -> the surface groups bounding it (outer and inner shells).
-    The vertices get consecutive node tags in the order of each group's points.
-    """
-    gmsh.model.add("around-surfaces")
-    first, corners, edge_keys, edge_points = 1, [], [], []
-    for tag, (name, (points, triangles)) in enumerate(surfaces.items(), 1):
-        vertices = np.unique(triangles[:, :3])
-        node_tag = np.zeros(len(points), np.int64)
-        node_tag[vertices] = np.arange(first, first + len(vertices))
-        gmsh.model.addDiscreteEntity(2, tag)
-        gmsh.model.mesh.addNodes(2, tag, node_tag[vertices], points[vertices].ravel())
-        gmsh.model.mesh.addElementsByType(tag, 2, [], node_tag[triangles[:, :3]].ravel())
-        gmsh.model.addPhysicalGroup(2, [tag], name=name)
-        corners.append(points[vertices])
-        if triangles.shape[1] == 6:
-            pairs, middle = quadratic_edges(triangles)
-            edge_keys.append(_edge_key(node_tag[pairs] - 1))
-            edge_points.append(points[middle])
-        first += len(vertices)
-    tag_of = {name: tag for tag, name in enumerate(surfaces, 1)}
-    volume = {name: gmsh.model.geo.addVolume([gmsh.model.geo.addSurfaceLoop([tag_of[s] for s in shells])])
-              for name, shells in volumes.items()}
-    gmsh.model.geo.synchronize()
-    for name, tag in volume.items():
-        gmsh.model.addPhysicalGroup(3, [tag], name=name)
-    # The surfaces carry the sizes; the volume grades between them.
-    gmsh.option.setNumber("Mesh.MeshSizeExtendFromBoundary", 1)
-    gmsh.option.setNumber("Mesh.ElementOrder", 1)
-    _generate(gmsh, path, 3)
-    if edge_keys:
-        _curve_surfaces(gmsh, np.concatenate(corners), np.concatenate(edge_keys), np.concatenate(edge_points))
-    _save(gmsh, path)
-
-
-def _edge_key(pairs: np.ndarray) -> np.ndarray:
-    """One integer per edge of (sorted) node-tag pairs."""
-    return pairs[:, 0] * (1 << 31) + pairs[:, 1]
-
-
-def _curve_surfaces(gmsh, corners: np.ndarray, keys: np.ndarray, midpoints: np.ndarray) -> None:
-    """Quadratic elements whose surface edges (``keys`` of pairs of rows of ``corners``)
-    have the given midpoint nodes. setOrder renumbers nodes, so corners are found by
-    position."""
-    gmsh.option.setNumber("Mesh.SecondOrderLinear", 1)  # straight first; the surface ones are moved below
-    gmsh.model.mesh.setOrder(2)
-    keys, first = np.unique(keys, return_index=True)
-    midpoints = midpoints[first]
-    position = _node_positions(gmsh)
-    tree = cKDTree(corners)
-    for _, tag in gmsh.model.getEntities(2):
-        nodes = gmsh.model.mesh.getElementsByType(9, tag)[1].reshape(-1, 6).astype(np.int64)
-        gap, corner = tree.query(position[nodes[:, :3]])
-        pairs, middle = quadratic_edges(np.c_[corner, nodes[:, 3:]])
-        at = np.searchsorted(keys, _edge_key(pairs))
-        found = (keys[np.minimum(at, len(keys) - 1)] == _edge_key(pairs)) & np.repeat(gap.max(axis=1) < 1e-9, 3)
-        for node, point in zip(middle[found], midpoints[at[found]]):
-            gmsh.model.mesh.setNode(int(node), point, [])
 
 
 def _mesh_geo(geo: str, path: Path, numbers: dict, default_size: float) -> None:
@@ -199,13 +26,13 @@ def _mesh_geo(geo: str, path: Path, numbers: dict, default_size: float) -> None:
     at the scene's default size."""
     with GmshModel(path.stem) as gmsh:
         _merge_geo(gmsh, geo, {**numbers, "h": default_size})
-        _generate(gmsh, path, 2)
+        generate(gmsh, path, 2)
         area = _mesh_area(gmsh)
         gmsh.clear()
         h = numbers["h"]
         check_mesh_cost(f"{path.stem.replace('_', '-')} --size {h:g}", area / h**2 * CELLS_PER_VOLUME[2], 2, h)
         _merge_geo(gmsh, geo, numbers)
-        _write_msh(gmsh, path, 2)
+        write_msh(gmsh, path, 2)
 
 
 def _merge_geo(gmsh, geo: str, numbers: dict) -> None:
@@ -216,7 +43,7 @@ def _merge_geo(gmsh, geo: str, numbers: dict) -> None:
 
 def _mesh_area(gmsh) -> float:
     """The area of the current 2D mesh (its triangles' corners)."""
-    position = _node_positions(gmsh)
+    position = node_positions(gmsh)
     area = 0.0
     for etype, nodes in zip(*gmsh.model.mesh.getElements(2)[::2]):
         corners = position[nodes.reshape(-1, gmsh.model.mesh.getElementProperties(etype)[3])[:, :3]]
@@ -224,123 +51,19 @@ def _mesh_area(gmsh) -> float:
     return float(area)
 
 
-LETTER_A_TOML = """\
-# The paper's 2D experiment: letter A, feet clamped, top loaded, outline matched.
-mesh = "letter_a.msh"
-plane = "strain"
-degree = 2            # P2 is accurate; degree = 1 is the paper's setting (locks as nu -> 0.5)
-
-[materials.letter]
-E  = 10.0             # with unknown forces only nu is identifiable for one material
-nu = {{ estimate = true, initial = 0.3, bounds = [0.0, 0.499] }}
-
-[boundary]
-fixed   = ["feet"]
-loaded  = ["top"]
-matched = ["outline"]
-
-# Used by `simulate` to make a synthetic target: the top is pushed down and sideways.
-[boundary.displacement.top]
-value = [0.4, -0.8]
-
-[target]
-surface = "target.vtp"   # e.g. the surface.vtp written by `simulate`
-"""
-
-CANTILEVER_TOML = """\
-# Plane-stress cantilever (Timoshenko-Goodier): support clamped, end shear at the tip.
-mesh = "cantilever.msh"
-plane = "stress"
-degree = 2
-
-[materials.beam]
-E  = 1000.0
-nu = 0.3
-
-[boundary]
-fixed   = ["support"]
-loaded  = ["tip"]
-matched = ["top", "bottom"]
-
-# Used by `simulate`: total force on the tip, spread as a uniform traction.
-[boundary.load]
-tip = [0.0, -1.0]
-"""
-
-INCLUSION_TOML = """\
-# A stiff inclusion in a softer plate: recover the E ratio from the outline and the
-# inclusion interface. Bottom clamped, top loaded (unknown forces).
-mesh = "inclusion.msh"
-plane = "strain"
-degree = 2
-
-[materials.inclusion]
-E  = {{ estimate = true, initial = 30.0, bounds = [1.0, 1000.0] }}
-nu = 0.3
-
-[materials.matrix]
-E  = 10.0             # the reference
-nu = 0.3
-
-[boundary]
-fixed   = ["bottom"]
-loaded  = ["top"]
-matched = ["outline", "interface"]
-
-# Used by `simulate`: the top pressed down and sheared.
-[boundary.displacement.top]
-value = [0.5, -0.8]
-
-[target]
-surfaces = {{ outline = "target_outline.vtp", interface = "target_interface.vtp" }}
-"""
-
-PHANTOM_TOML = """\
-# Synthetic pelvis: soft tissue with a bladder cavity, a prostate and a rectum tube,
-# clamped at the bones. Units: cm and kPa.
-mesh = "phantom.msh"
-degree = 2
-
-[materials.prostate]
-E  = {{ estimate = true, initial = 30.0, bounds = [2.0, 300.0] }}
-nu = 0.4
-
-[materials.tissue]
-E  = 10.0             # the reference: with unknown forces only E ratios are identifiable
-nu = 0.4
-
-# Phi*(E) is smooth and single-welled in log E here: three scan points start it well.
-[optimizer]
-scan = 3
-
-[boundary]
-fixed   = ["bones"]
-loaded  = ["bladder", "rectum"]
-matched = ["bladder", "prostate_surface", "rectum"]
-
-# Used by `simulate`: the bladder inflated by {inflation:.0%} about its centre.
-[boundary.displacement.bladder]
-scale  = {inflation}
-center = [{cx:.4f}, {cy:.4f}, {cz:.4f}]
-
-[target]
-surface = "target.vtp"
-"""
-
-
 def build_letter_a(out: Path, size: float | None = None) -> Path:
     _mesh_geo("letter_a.geo", out / "letter_a.msh", {"h": size or 0.4}, 0.4)
-    return _write_toml(out, LETTER_A_TOML.format())
+    return _write_toml(out, "letter_a.toml")
 
 
 def build_cantilever(out: Path, size: float | None = None, length: float = 8.0, half_height: float = 1.0) -> Path:
     _mesh_geo("cantilever.geo", out / "cantilever.msh", {"h": size or 0.25, "L": length, "c": half_height}, 0.25)
-    return _write_toml(out, CANTILEVER_TOML)
+    return _write_toml(out, "cantilever.toml")
 
 
 def build_inclusion(out: Path, size: float | None = None, radius: float = 2.0) -> Path:
     _mesh_geo("inclusion.geo", out / "inclusion.msh", {"h": size or 0.5, "r": radius}, 0.5)
-    return _write_toml(out, INCLUSION_TOML.format())
+    return _write_toml(out, "inclusion.toml")
 
 
 def phantom_organs(seed: int) -> dict:
@@ -486,7 +209,7 @@ def build_prostate_phantom(out: Path, size: float | None = None, seed: int = 0, 
                 if bone_size is not None or err.groups != ["bones"]:
                     raise
     c = organs["bladder"]["center"]
-    return _write_toml(out, PHANTOM_TOML.format(inflation=0.1, cx=c[0], cy=c[1], cz=c[2]))
+    return _write_toml(out, "phantom.toml", inflation=0.1, inflation_percent="10%", cx=f"{c[0]:.4f}", cy=f"{c[1]:.4f}", cz=f"{c[2]:.4f}")
 
 
 def _phantom_geometry(gmsh, organs: dict, seed: int) -> dict[str, list[int]]:
@@ -560,20 +283,21 @@ def _phantom_sizes(gmsh, faces: dict, h: float, organ_size: float, prostate_size
 def _mesh_phantom(gmsh, faces: dict, atlas: dict | None, path: Path) -> None:
     """Mesh and write the phantom; around the atlas's loaded surfaces if given."""
     if atlas is None:
-        _write_msh(gmsh, path, 3)
+        write_msh(gmsh, path, 3)
         return
     require(set(atlas) <= set(faces), f"atlas surfaces {sorted(atlas)}: the phantom has only {sorted(faces)}")
-    _generate(gmsh, path, 2)
+    generate(gmsh, path, 2)
     surfaces = physical_surfaces(gmsh)
     for g, (points, triangles) in fit_surfaces(atlas, {g: surfaces[g] for g in atlas}).items():
-        surfaces[g] = (_onto_geometry(gmsh, faces[g], points), triangles)
+        surfaces[g] = (onto_geometry(gmsh, faces[g], points), triangles)
     shells = [g for g in faces if g != "prostate_surface"] + ["prostate_surface"]
-    _mesh_inside(gmsh, surfaces, {"tissue": shells, "prostate": ["prostate_surface"]}, path)
+    mesh_inside(gmsh, surfaces, {"tissue": shells, "prostate": ["prostate_surface"]}, path)
 
 
-def _write_toml(out: Path, text: str) -> Path:
+def _write_toml(out: Path, template: str, **values) -> Path:
+    """The scene's problem.toml from its template in meshes/ ($name placeholders filled)."""
     path = out / "problem.toml"
-    path.write_text(text)
+    path.write_text(Template((GEO_DIR / template).read_text()).substitute(values))
     return path
 
 

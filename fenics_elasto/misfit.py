@@ -1,4 +1,4 @@
-"""The misfit between observed positions and the target (method.md §2).
+"""The misfit between observed positions and the target (docs/method.md §3).
 
     Phi(y) = 1/2 sum_l w_l |r_l(y)|^2,   r_l = y_l - target_l(y_l)
 

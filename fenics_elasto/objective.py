@@ -1,4 +1,4 @@
-"""The misfit Phi(theta, controls) and its hand-derived adjoint gradients (method.md §2-3).
+"""The misfit Phi(theta, controls) and its hand-derived adjoint gradients (docs/method.md §3-4).
 
     forward:  K u = P F                   adjoint:  K w = O^T w_r r
     dPhi/dF = P^T w                       dPhi/dtheta_k = -w^T (dK/dtheta_k) u

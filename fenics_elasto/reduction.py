@@ -1,4 +1,4 @@
-"""Reduced force bases (method.md §5): PCA of example boundary displacements.
+"""Reduced force bases (docs/method.md §6): PCA of example boundary displacements.
 
 Training matches the source's matched nodes to each example target surface
 (iterative surface matching), keeps the loaded nodes' displacements, and takes the
@@ -18,15 +18,14 @@ from pathlib import Path
 
 import numpy as np
 
-from scipy.spatial import cKDTree
 
+from fenics_elasto.atlas import atlas_nodes, atlas_order, from_atlas, to_atlas
 from fenics_elasto.errors import UserError, require
 from fenics_elasto.logs import log
 from fenics_elasto.matching import match_surface
-from fenics_elasto.meshing import read_surfaces
 from fenics_elasto.objective import InverseProblem
 from fenics_elasto.misfit import SurfaceTerm
-from fenics_elasto.surface import quadratic_edges, read_surface, triangle_edges
+from fenics_elasto.surface import read_surface
 
 
 @dataclass
@@ -182,6 +181,16 @@ def held_out_energy(data: np.ndarray, rank: int, first=None, folds: int = 5) -> 
     return kept / total if total > 0 else None
 
 
+def bases_fit(W: np.ndarray | None, d0: np.ndarray) -> dict | None:
+    """How much of the wall motion surface matching found (d0) the bases can represent:
+    |W W^T d0|^2 / |d0|^2 (1: all of it); None without bases."""
+    if W is None:
+        return None
+    kept = W @ (W.T @ d0)
+    total = float(d0 @ d0)
+    return {"wall_motion_explained": float(kept @ kept) / total if total > 0 else 1.0}
+
+
 def load_bases(path: Path, problem: InverseProblem, rank: int | None) -> np.ndarray:
     """W of bases from ``train`` on this scene's loaded nodes (refused if they do not fit)."""
     bases = Bases.read(path)
@@ -189,77 +198,6 @@ def load_bases(path: Path, problem: InverseProblem, rank: int | None) -> np.ndar
         return bases.truncated(rank or bases.W.shape[1]).on(problem)
     except UserError as err:
         raise UserError(f"{path}: {err}") from None
-
-
-# --------------------------------------------------------------------------- atlas
-#
-# Multi-source training (paper §3.3.3). An atlas is a set of loaded-surface
-# triangulations (group -> (points, triangles)), e.g. ``read_surfaces`` of one
-# patient's mesh. Every patient's mesh is built around the atlas
-# (``build_prostate_phantom(atlas=...)``): the atlas triangles are fitted onto that
-# patient's organs and the volume is meshed around them. So all patients have the
-# same loaded nodes -- the vertices and (P2) edge midpoints of the atlas triangles --
-# and a field in atlas numbering means the same thing on each of them.
-
-
-def atlas_nodes(surfaces: dict, degree: int) -> np.ndarray:
-    """The loaded nodes in atlas numbering: per group, its vertices (in the order of
-    its points), then (degree 2) its edges' midpoint nodes, edges in sorted order.
-
-    Surfaces of 3-node triangles (flat meshes) have straight midpoints.
-    """
-    require(degree in (1, 2), f"atlas numbering is defined for degree 1 or 2, not {degree}")
-    parts = []
-    for points, triangles in surfaces.values():
-        parts.append(points[np.unique(triangles[:, :3])])
-        if degree == 2:
-            pairs = triangle_edges(triangles)
-            midpoints = points[quadratic_edges(triangles)[1]] if triangles.shape[1] == 6 else points[pairs].mean(axis=1)
-            _, first = np.unique(pairs, axis=0, return_index=True)
-            parts.append(midpoints[first])
-    return np.concatenate(parts)
-
-
-def atlas_order(problem: InverseProblem, atlas: dict) -> np.ndarray:
-    """Each atlas node's index among the problem's loaded nodes.
-
-    The patient's mesh must have been built around ``atlas``: its loaded surfaces
-    have the atlas's triangles, and its loaded nodes are exactly the atlas nodes.
-    """
-    scene = problem.scene
-    msh = scene.mesh_file
-    own = scene.comm.bcast(read_surfaces(msh) if scene.comm.rank == 0 else None, root=0)
-    built_around = all(g in atlas and g in own and np.array_equal(_topology(own[g]), _topology(atlas[g]))
-                       for g in scene.loaded)
-    require(built_around, f"{msh}: its loaded surfaces ({', '.join(scene.loaded)}) were not built around "
-                          "this atlas; mesh the patient with the atlas")
-    nodes = atlas_nodes({g: own[g] for g in scene.loaded}, scene.degree)
-    coords = problem.loaded.gather(problem.loaded.coords)
-    gap, order = cKDTree(coords).query(nodes)
-    tol = 1e-9 * np.ptp(coords, axis=0).max()
-    require(len(nodes) == len(coords) and gap.max() <= tol and len(np.unique(order)) == len(order),
-            f"{msh}: its loaded nodes are not the atlas nodes ({len(coords)} vs {len(nodes)}, worst gap {gap.max():.2g})")
-    return order
-
-
-def _topology(surface) -> np.ndarray:
-    """A triangulation's triangles as sorted vertex triples (vertices numbered in
-    point order), in sorted order: equal for equal triangulations."""
-    corners = surface[1][:, :3]
-    rank = np.searchsorted(np.unique(corners), corners)
-    return np.unique(np.sort(rank, axis=1), axis=0)
-
-
-def to_atlas(field: np.ndarray, order: np.ndarray) -> np.ndarray:
-    """A per-node field (rows node*gdim + component, optionally with columns) in atlas numbering."""
-    return field.reshape(len(order), -1, *field.shape[1:])[order].reshape(field.shape)
-
-
-def from_atlas(field: np.ndarray, order: np.ndarray) -> np.ndarray:
-    """An atlas-numbered per-node field on the patient's own loaded nodes."""
-    out = np.empty_like(field)
-    out.reshape(len(order), -1, *field.shape[1:])[order] = field.reshape(len(order), -1, *field.shape[1:])
-    return out
 
 
 def train_atlas_bases(atlas: dict, patients, rank: int) -> Bases:

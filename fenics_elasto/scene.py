@@ -1,12 +1,13 @@
 """A scene: mesh with named regions and boundaries, materials, and the problem's settings.
 
-A scene is a gmsh ``.msh`` plus a ``problem.toml`` beside it (see interface.md).
+A scene is a gmsh ``.msh`` plus a ``problem.toml`` beside it (the format: README, "Scenes").
 Everything a user can get wrong is checked here, once, with a one-line message.
 """
 
 from __future__ import annotations
 
 import copy
+import itertools
 
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -20,9 +21,9 @@ from dolfinx.io.utils import distribute_entity_data
 
 from fenics_elasto.config import PROBLEM, apply_overrides, check_gdim, read_toml, validate_problem
 from fenics_elasto.errors import UserError, on_root, require
-from fenics_elasto.interrupts import restore_handlers
+from fenics_elasto.gmsh_models import open_msh, physical_facets
 from fenics_elasto.logs import log
-from fenics_elasto.meshcheck import check_mesh, read_msh_file
+from fenics_elasto.meshcheck import check_mesh
 
 ELASTIC_KEYS = ("E", "nu")
 
@@ -141,42 +142,20 @@ class Parameters:
         low, high = np.array(self.bounds, float).reshape(len(self), 2).T
         return list(zip(self.to_s(low), self.to_s(high)))
 
+    def scan(self, n: int) -> list[np.ndarray]:
+        """A grid of n values per constant at the centres of n equal parts of its bounds
+        (log-spaced for E)."""
+        q = (np.arange(n) + 0.5) / n
+        low, high = np.array(self.bounds, float).reshape(len(self), 2).T
+        s_low, s_high = self.to_s(low), self.to_s(high)
+        axes = [self.to_theta(s_low + qi * (s_high - s_low)) for qi in q]
+        return [np.array([axes[i][k] for k, i in enumerate(index)]) for index in itertools.product(range(n), repeat=len(self))]
+
     def describe(self, theta) -> str:
         return "  ".join(f"{label} = {value:.5g}" for label, value in zip(self.labels, np.atleast_1d(theta)))
 
 
 # --------------------------------------------------------------------------- mesh
-
-
-def fresh_gmsh_model(name: str):
-    """An empty gmsh model with default options (options are global: they would leak
-    from one model to the next); gmsh stays quiet."""
-    import gmsh
-
-    if not gmsh.isInitialized():
-        gmsh.initialize(interruptible=False)
-        restore_handlers()  # gmsh resets SIGTERM and SIGHUP to their default: they would kill the run
-    gmsh.option.setNumber("General.Terminal", 0)
-    gmsh.clear()
-    gmsh.option.restoreDefaults()
-    gmsh.option.setNumber("General.Terminal", 0)
-    gmsh.model.add(name)
-    return gmsh
-
-
-def gmsh_facet_groups(gmsh, tdim: int) -> dict[str, np.ndarray]:
-    """Every facet physical group's facets as rows of 0-based input node indices."""
-    groups = {}
-    for dim, tag in gmsh.model.getPhysicalGroups(tdim - 1):
-        name = gmsh.model.getPhysicalName(dim, tag) or str(tag)
-        rows = []
-        for entity in gmsh.model.getEntitiesForPhysicalGroup(dim, tag):
-            types, _, nodes = gmsh.model.mesh.getElements(dim, entity)
-            for etype, enodes in zip(types, nodes):
-                n = gmsh.model.mesh.getElementProperties(etype)[3]
-                rows.append(np.asarray(enodes, dtype=np.int64).reshape(-1, n) - 1)
-        groups[name] = np.concatenate(rows) if rows else np.empty((0, tdim), np.int64)
-    return groups
 
 
 def read_msh(path: Path, comm=MPI.COMM_WORLD):
@@ -192,8 +171,7 @@ def read_msh(path: Path, comm=MPI.COMM_WORLD):
     facet_rows = {}  # rank 0: every facet group's facets as node rows
 
     def open_model():
-        fresh_gmsh_model(path.stem)
-        read_msh_file(gmsh, path)
+        open_msh(path)
         groups = gmsh.model.getPhysicalGroups()
         require(groups, f"{path}: the mesh has no physical groups")
         tdim = max(d for d, _ in groups)
@@ -208,7 +186,7 @@ def read_msh(path: Path, comm=MPI.COMM_WORLD):
         require(not unnamed, f"{path}: cell physical group(s) {unnamed} have no name; the problem file names "
                              "each region's material (gmsh: Physical Volume(\"name\") = ...)")
         check_mesh(gmsh, str(path), tdim)
-        facet_rows.update(gmsh_facet_groups(gmsh, tdim))
+        facet_rows.update(physical_facets(gmsh, tdim))
         return tdim, sorted(facet_rows)
 
     try:

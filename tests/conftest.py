@@ -1,6 +1,8 @@
 """Shared fixtures. Meshes are built once per session into a temporary folder; the
 FFCx JIT cache (~/.cache/fenics) stays warm across tests and runs."""
 
+import contextlib
+import logging
 import subprocess
 import sys
 from pathlib import Path
@@ -50,3 +52,22 @@ def assert_picture(path: Path, min_coverage: float = 0.005) -> None:
     drawn = np.abs(image - background).sum(axis=2) > 30
     assert drawn.mean() > min_coverage, f"{path}: only {drawn.mean():.2%} drawn"
     assert len(np.unique(image.reshape(-1, 3), axis=0)) > 20, f"{path}: too few colours"
+
+
+@contextlib.contextmanager
+def logged(lines: list):
+    """The library's progress and warning lines, collected into ``lines``."""
+    from fenics_elasto.logs import log
+
+    class Keep(logging.Handler):
+        def emit(self, record):
+            lines.append(record.getMessage())
+
+    keep, level = Keep(), log.level
+    log.addHandler(keep)
+    log.setLevel(logging.INFO)
+    try:
+        yield lines
+    finally:
+        log.removeHandler(keep)
+        log.setLevel(level)

@@ -8,7 +8,7 @@ from fenics_elasto import budget
 from fenics_elasto.cli import main
 from fenics_elasto.errors import UserError
 from fenics_elasto.meshing import ORGAN_SIZE, PHANTOM_HALF, PROSTATE_SIZE, _phantom_cells, phantom_organs
-from fenics_elasto.scene import fresh_gmsh_model
+from fenics_elasto.gmsh_models import fresh_gmsh_model
 
 
 def cells_in(msh, dim: int) -> int:

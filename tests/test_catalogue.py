@@ -459,8 +459,6 @@ def test_targets_landmarks_and_bases(env, capfd, row):
 WARNINGS = [
     case("estimate-target-10x", lambda e: e.target(files.moved(e.truth / "surface.vtp", e.bad / "big.vtp", scale=10.0)),
          "big.vtp", "spans", warning=True),
-    case("estimate-target-tenth", lambda e: e.target(files.moved(e.truth / "surface.vtp", e.bad / "small.vtp", scale=0.6)),
-         "small.vtp", "spans", warning=True),
     case("estimate-misfit-above-noise", lambda e: e.estimate("target.noise=1e-9"), "target.noise", warning=True),
 ]
 

@@ -114,8 +114,8 @@ def test_patients_meshed_around_an_atlas_share_its_nodes(tmp_path):
     """A patient meshed around the atlas's bladder and rectum has exactly the atlas
     nodes as loaded nodes; they sit where the organ's own shape change takes them;
     numbering round-trips; a patient meshed on its own is refused."""
-    from fenics_elasto.meshing import atlas_surfaces, phantom_organs
-    from fenics_elasto.reduction import atlas_nodes, atlas_order, from_atlas, to_atlas
+    from fenics_elasto.atlas import atlas_nodes, atlas_order, atlas_surfaces, from_atlas, to_atlas
+    from fenics_elasto.meshing import phantom_organs
 
     build_scene("prostate-phantom", tmp_path / "atlas", size=1.6)
     atlas = atlas_surfaces(tmp_path / "atlas" / "phantom.msh")
@@ -153,27 +153,22 @@ def test_held_out_patient_with_bases_from_others(tmp_path, capsys):
     """Bases trained from the command line on patients 1-3 (meshed around patient 0's
     organs) fit a patient they never saw and recover its E through `estimate` with a
     [reduction] table (coarse P2 phantom: the bound is loose, see README)."""
-    import sys
-
-    from conftest import ROOT
-
-    sys.path.insert(0, str(ROOT / "demos"))
-    from prostate_elastography import make_examples, make_targets
-
     from fenics_elasto.cli import main
+    from fenics_elasto.study import simulate_examples, simulate_targets
 
     build_scene("prostate-phantom", tmp_path / "atlas", size=1.6)
     atlas = tmp_path / "atlas" / "phantom.msh"
     train = ["train", "--atlas", str(atlas), "--rank", "12", "--out", str(tmp_path / "bases.npz")]
     for seed in (1, 2, 3):
         source = build_scene("prostate-phantom", tmp_path / f"p{seed}", size=1.6, seed=seed, atlas=read_atlas(atlas))
-        examples = make_examples(source, tmp_path / f"p{seed}" / "examples", 5, seed=10 + seed, patient=seed)
+        examples = simulate_examples(source, tmp_path / f"p{seed}" / "examples", 5, seed=10 + seed, patient=seed)
         train += ["--patient", str(source), *map(str, examples)]
     assert main(train) == 0
     assert "patient 3/3" in capsys.readouterr().out
 
     held = build_scene("prostate-phantom", tmp_path / "held", size=1.6, seed=7, atlas=read_atlas(atlas))
-    target = make_targets(tmp_path / "held_target", (50.0,), 1.3, patient=7)[50.0]["surfaces"]
+    surfaces = simulate_targets(tmp_path / "held_target", (50.0,), 1.3, patient=7)[50.0].surfaces
+    target = "target.surfaces={" + ", ".join(f"{g}='{p}'" for g, p in surfaces.items()) + "}"
     reduction = f"reduction={{bases='{tmp_path / 'bases.npz'}'}}"
     assert main(["estimate", str(held), "--out", str(tmp_path / "result"), "--set", target, "--set", reduction]) == 0
     result = json.loads((tmp_path / "result" / "result.json").read_text())
@@ -190,6 +185,6 @@ def test_held_out_patient_with_bases_from_others(tmp_path, capsys):
 
 
 def read_atlas(msh):
-    from fenics_elasto.meshing import atlas_surfaces
+    from fenics_elasto.atlas import atlas_surfaces
 
     return atlas_surfaces(msh)

@@ -1,0 +1,120 @@
+"""Synthetic studies on the prostate phantom: wall motions, example scans and targets.
+
+What demos, benchmarks and tests need to make "measurements" the estimate has not
+seen: a finer mesh of the same patient, organ motion unlike the training examples,
+the curved organ surfaces written finely, and optionally the exact solution at the
+source's matched nodes as landmarks. Motions and targets are typed objects whose
+``settings()`` go straight into ``load_scene``/``reconfigure`` -- no TOML strings.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from fenics_elasto.elasticity import ElasticModel
+from fenics_elasto.io import write_matched_surfaces
+from fenics_elasto.meshing import build_scene, phantom_organs
+from fenics_elasto.scene import load_scene, reconfigure
+from fenics_elasto.simulate import simulate, write_landmarks_for
+
+ORGANS = ("bladder", "prostate_surface", "rectum")
+EXAMPLE_E = (20.0, 40.0, 60.0, 80.0)  # prostate E levels (kPa) of the example deformations
+
+
+@dataclass
+class Motion:
+    """A prescribed wall motion for ``simulate``: u = value + (gradient + scale I)(x - center)
+    plus an optional smooth random ripple {amplitude, length, seed}."""
+
+    value: list | None = None
+    gradient: list | None = None
+    scale: float = 0.0
+    center: list | None = None
+    ripple: dict | None = None
+
+    def table(self) -> dict:
+        out = {"scale": float(self.scale)}
+        for key in ("value", "gradient", "center", "ripple"):
+            if getattr(self, key) is not None:
+                out[key] = np.asarray(getattr(self, key), float).tolist() if key != "ripple" else dict(self.ripple)
+        return out
+
+
+def motions(walls: dict[str, Motion]) -> dict:
+    """Settings that prescribe these wall motions (and nothing else) in ``simulate``."""
+    return {"boundary.displacement": {g: m.table() for g, m in walls.items()}}
+
+
+@dataclass
+class TargetFiles:
+    """A target on disk: one surface per matched group, and/or landmarks."""
+
+    surfaces: dict[str, Path] = field(default_factory=dict)
+    landmarks: Path | None = None
+
+    def settings(self, landmarks: bool | None = None) -> dict:
+        """``[target]`` for load_scene: the surfaces (and the landmarks if there are any,
+        unless ``landmarks`` says otherwise; ``landmarks=True`` alone: landmarks only)."""
+        use = self.landmarks is not None if landmarks is None else landmarks
+        table = {} if landmarks is True else {"surfaces": {g: str(p.resolve()) for g, p in self.surfaces.items()}}
+        if use:
+            table["landmarks"] = str(self.landmarks.resolve())
+        return {"target": table}
+
+
+def phantom_motion(organs: dict, bladder_scale, bladder_shift, rectum_scale, rectum_shift) -> dict[str, Motion]:
+    """The bladder inflates about its centre, the rectum widens about its axis; both shift."""
+    r = rectum_scale
+    return {"bladder": Motion(value=bladder_shift, scale=bladder_scale, center=organs["bladder"]["center"]),
+            "rectum": Motion(value=rectum_shift, gradient=[[r, 0, 0], [0, r, 0], [0, 0, 0]],
+                             center=organs["rectum"]["center"])}
+
+
+def simulate_examples(source: Path, out: Path, count: int, seed: int = 1, patient: int = 0) -> list[Path]:
+    """Example deformations of a patient (phantom seed), saved as organ surfaces.
+
+    The prostate E takes a few levels (the organ motion, not E, is what the bases
+    learn), so examples with equal E share one factorization of one model.
+    """
+    rng = np.random.default_rng(seed)
+    organs = phantom_organs(patient)
+    scene = load_scene(source)
+    model = ElasticModel(scene)
+    draws = [(rng.choice(EXAMPLE_E), phantom_motion(organs, rng.uniform(0.0, 0.15), rng.uniform(-0.15, 0.15, 3),
+                                                     rng.uniform(0.0, 0.2), rng.uniform(-0.1, 0.1, 3)))
+             for _ in range(count)]
+    folders = [out / f"example_{i:02d}" for i in range(count)]
+    for i in sorted(range(count), key=lambda i: draws[i][0]):
+        E, walls = draws[i]
+        example = reconfigure(scene, {**motions(walls), "materials.prostate.E": float(E)})
+        write_matched_surfaces(folders[i], example, simulate(example, model).u)
+    return folders
+
+
+HELD_OUT_MOTION = (0.12, [0.1, -0.1, 0.05], 0.15, [0.05, 0.0, 0.0])  # unlike any example's
+
+
+def simulate_targets(out: Path, Es, size: float, patient: int = 0, source: Path | None = None, pieces: int = 8,
+                     walls: dict[str, Motion] | None = None, **detail) -> dict[float, TargetFiles]:
+    """The held-out 'measurements', one per true prostate E: a finer mesh (built once,
+    ``detail``: its organ_size / prostate_size), organ motion unlike the examples (or
+    ``walls``), the curved organ surfaces written as ``pieces`` x ``pieces`` flat
+    triangles per facet; given the ``source``, also landmarks: the fine solution at the
+    source's matched nodes."""
+    organs = phantom_organs(patient)
+    fine = load_scene(build_scene("prostate-phantom", out / "fine", size=size, seed=patient, **detail))
+    model = ElasticModel(fine)
+    matched = load_scene(source) if source is not None else None
+    walls = walls or phantom_motion(organs, *HELD_OUT_MOTION)
+    targets = {}
+    for E in Es:
+        scene = reconfigure(fine, {**motions(walls), "materials.prostate.E": float(E)})
+        folder = out / f"target_E{E:g}"
+        u = simulate(scene, model).u
+        write_matched_surfaces(folder, scene, u, pieces)
+        landmarks = write_landmarks_for(matched, u, folder / "landmarks.csv") if matched is not None else None
+        targets[E] = TargetFiles({g: folder / f"surface_{g}.vtp" for g in ORGANS}, landmarks)
+    return targets

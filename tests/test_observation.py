@@ -1,0 +1,92 @@
+"""Where the model is observed: matched nodes by the "auto" rule, landmarks anywhere in
+the body (interpolated exactly for fields the space holds), surfaces plus landmarks,
+and the full-space set-ups that cannot determine anything refused at once."""
+
+import numpy as np
+import pytest
+
+from conftest import run_cli
+from fenics_elasto.cli import main
+from fenics_elasto.elasticity import ElasticModel
+from fenics_elasto.errors import UserError
+from fenics_elasto.estimate import estimate
+from fenics_elasto.meshing import build_scene
+from fenics_elasto.objective import InverseProblem
+from fenics_elasto.observation import Observation, PointProbe
+from fenics_elasto.scene import load_scene
+from fenics_elasto.simulate import probe
+from targets import fine_simulation
+
+
+def test_auto_matches_vertices_on_straight_p2_and_every_node_on_curved(scenes, tmp_path):
+    letter = load_scene(scenes["letter-a"])  # straight-sided (order-1 geometry), P2
+    assert Observation(ElasticModel(letter), letter).vertices_only
+    p1 = load_scene(scenes["letter-a"], ["degree=1"])
+    assert not Observation(ElasticModel(p1), p1).vertices_only
+    curved = load_scene(build_scene("inclusion", tmp_path / "inclusion"))  # order-2 geometry: nodes on the circle
+    assert not Observation(ElasticModel(curved), curved).vertices_only
+    every = load_scene(scenes["letter-a"], ["boundary.match_nodes='all'"])
+    assert not Observation(ElasticModel(every), every).vertices_only
+
+
+def test_landmarks_anywhere_interpolate_affine_fields_exactly(scenes):
+    """On an isoparametric mesh the coordinates are in the space, so affine fields are:
+    their interpolation at random interior points (not nodes), in curved cells too,
+    equals their values there. (A quadratic field is not exact in a curved cell.)"""
+    scene = load_scene(scenes["prostate-phantom"])
+    model = ElasticModel(scene)
+    u = model.function()
+    x = model.V.tabulate_dof_coordinates()
+
+    def field(p):
+        return np.stack([0.1 * p[:, 1] - 0.2 * p[:, 2], -0.05 * p[:, 0] + 0.01, 0.02 + 0.3 * p[:, 0]], axis=1)
+
+    u.x.array[:] = field(x).ravel()
+    rng = np.random.default_rng(0)
+    points = rng.uniform([-3, -2, -3], [3, 2, 0.5], (40, 3))  # inside the box, away from the cavities
+    points = points[np.linalg.norm((points - [0.0, -0.3, 2.6]) / [2.3, 1.9, 1.5], axis=1) > 1.1]
+    assert np.abs(probe(u, points) - field(points)).max() < 1e-10
+    with pytest.raises(UserError, match="outside the body"):
+        PointProbe(model.V, np.array([[0.0, 0.0, 50.0]]), tolerance=0.1)
+
+
+def test_surfaces_plus_interior_landmarks(tmp_path):
+    """Letter A: the outline plus three interior points of a finer-mesh solution (not
+    nodes of the source); nu recovered, the landmark rows fitted."""
+    source = build_scene("letter-a", tmp_path / "source")
+    _, sim = fine_simulation("letter-a", tmp_path / "fine", 0.2, ["materials.letter.nu=0.35"])
+    points = np.array([[1.3, 1.5], [4.0, 9.0], [6.4, 1.2]])
+    moved = points + probe(sim.u, points)
+    (tmp_path / "lm.csv").write_text("".join(f"{a},{b},{c},{d}\n" for (a, b), (c, d) in zip(points, moved)))
+    target = tmp_path / "fine" / "target" / "surface.vtp"
+    scene = load_scene(source, [f"target={{surface='{target}', landmarks='{tmp_path / 'lm.csv'}'}}"])
+    problem = InverseProblem(scene)
+    assert len(problem.misfit.landmark_rows()) == 3 and problem.observation.count == problem.observation.node_count + 3
+    result = estimate(problem)
+    assert abs(result.materials["letter"]["nu"] - 0.35) < 0.005, result.materials
+    assert result["distances"]["landmarks"]["max"] < 5e-3
+    assert "uncertainty" in result.record and result["uncertainty"]["letter.nu"]["std"] > 0
+
+
+def test_a_landmark_outside_the_body_is_one_line(scenes, tmp_path, capsys):
+    (tmp_path / "lm.csv").write_text("50.0,50.0,50.1,50.0\n")
+    assert main(["estimate", str(scenes["letter-a"]), "--out", str(tmp_path / "out"),
+                 "--set", f"target={{landmarks='{tmp_path / 'lm.csv'}'}}"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error:") and "outside the body" in err and "\n" not in err, err
+
+
+def test_full_force_space_on_surfaces_is_refused_before_any_solve(scenes, tmp_path):
+    """The phantom's loaded walls are matched: in the full force space every E fits the
+    surfaces (measured before: a 15-minute run to an arbitrary number)."""
+    from fenics_elasto.io import write_matched_surfaces
+
+    scene = load_scene(scenes["prostate-phantom"])
+    write_matched_surfaces(tmp_path / "still", scene, ElasticModel(scene).function())  # the undeformed organs
+    table = ", ".join(f"{g}='{tmp_path / 'still' / f'surface_{g}.vtp'}'" for g in ("bladder", "prostate_surface", "rectum"))
+    proc = run_cli("estimate", scenes["prostate-phantom"], "--out", tmp_path / "out", "--set", f"target.surfaces={{{table}}}",
+                   timeout=120)
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    line = proc.stderr.strip().splitlines()[-1]
+    assert line.startswith("error:") and "cannot determine prostate.E" in line and "--synthetic" in line, line
+    assert "scan" not in proc.stdout  # refused before the first solve
