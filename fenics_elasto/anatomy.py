@@ -38,11 +38,15 @@ from pathlib import Path
 
 import numpy as np
 
-from fenics_elasto.anatomy_repair import Shell, closed_shells, cut_by_planes, enclosed_volume, quiet_vtk, sharp_edges
+from fenics_elasto.anatomy_repair import (Shell, closed_shells, cut_by_planes, enclosed_volume, sharp_edges,
+                                          triangle_areas)
+from fenics_elasto.budget import CELLS_PER_VOLUME, check_mesh_cost
 from fenics_elasto.config import read_scene_spec
 from fenics_elasto.errors import UserError, require
-from fenics_elasto.logs import log
 from fenics_elasto.gmsh_models import fresh_gmsh_model
+from fenics_elasto.logs import log
+from fenics_elasto.meshcheck import check_mesh
+from fenics_elasto.surface import quiet_vtk
 
 ORGAN_SIZE_RATIO = 3.0  # default organ_size = size / 3
 BODY_ELEMENTS = 15.0  # default size = body diameter (bounding-box diagonal) / 15
@@ -190,7 +194,7 @@ def _check_apart(shells: list[Shell], gap: float) -> None:
             b = shells[j]
             if (a.bounds[0] > b.bounds[1] + gap).any() or (b.bounds[0] > a.bounds[1] + gap).any():
                 continue
-            with quiet_vtk():
+            with quiet_vtk(raise_errors=True):
                 _, contacts = polys[i].collision(polys[j], contact_mode=1)
             require(contacts == 0, _contact(a, b, "intersect"))
             distance = _gap(a, b, gap)
@@ -440,6 +444,7 @@ def mesh_shells(shells: list[Shell], parents: list, patches: list[Patch], size: 
         msh.parent.mkdir(parents=True, exist_ok=True)
         gmsh.option.setNumber("Mesh.MshFileVersion", 4.1)
         gmsh.option.setNumber("Mesh.SaveAll", 0)
+        check_mesh(gmsh, f"{msh.name} as meshed", 3)
         gmsh.write(str(msh))
         return {"tetrahedra": len(gmsh.model.mesh.getElementsByType(11)[0]),
                 "nodes": len(gmsh.model.mesh.getNodes()[0]), "kept_straight": straight}
@@ -508,6 +513,17 @@ def _note_coarse_organs(organs: list[Shell], organ_size: float, units: str) -> N
                 f"({thickness:.3g} {units} thick); its shape will be rough")
 
 
+def _expected_cells(body: Shell, organs: list[Shell], size: float, organ_size: float) -> float:
+    """About how many tetrahedra gmsh will make (budget.py): the body's volume at
+    ``size``, plus a layer on each organ surface (both sides of a region's) where the
+    size grows from ``organ_size`` with slope GROWTH -- the integral of 1 / size^3 across
+    it, per unit area. Within ~15 % on the pelvis of the tests."""
+    volume = body.volume - sum(o.volume for o in organs if o.role == "cavity")
+    layer = 1 / organ_size**2 + (1 / organ_size**2 - 1 / size**2) / (2 * GROWTH)
+    area = sum(triangle_areas(o.points, o.triangles).sum() * (2 if o.role == "region" else 1) for o in organs)
+    return CELLS_PER_VOLUME[3] * (volume / size**3 + area * layer)
+
+
 def _sizes(spec: dict, body: Shell, size: float | None) -> tuple[float, float]:
     require(size is None or (math.isfinite(size) and size > 0), f"--size must be > 0, got {size}")
     size = size or spec["size"] or np.linalg.norm(np.ptp(body.points, axis=0)) / BODY_ELEMENTS
@@ -524,6 +540,8 @@ def build_scene_from_spec(spec_path, out, size: float | None = None) -> Path:
     organs = _organ_shells(spec, spec_path.parent)
     body = _body_shell(spec, spec_path.parent, organs)
     size, organ_size = _sizes(spec, body, size)
+    check_mesh_cost(f"{spec_path.name}: size {size:g}, organ_size {organ_size:g}",
+                    _expected_cells(body, organs, size, organ_size), 3, size)
     shells = [body, *organs]
     parents = nest(shells, TOUCH_RATIO * organ_size)
     patches = [Patch(name, np.array(p["side"]["point"]), np.array(p["side"]["normal"])) for name, p in spec["patches"].items()]

@@ -24,8 +24,6 @@ numbers and distances, SciPy (BSD-3) for components.
 
 from __future__ import annotations
 
-import contextlib
-import warnings
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -33,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from fenics_elasto.errors import UserError, require
+from fenics_elasto.surface import quiet_vtk
 from fenics_elasto.logs import log
 
 MERGE_TOLERANCE = 1e-7  # of the bounding-box diagonal
@@ -61,16 +60,6 @@ class Shell:
         return np.array([self.points.min(axis=0), self.points.max(axis=0)])
 
 
-@contextlib.contextmanager
-def quiet_vtk():
-    """VTK errors as exceptions, nothing printed (pyvista would log them to stderr)."""
-    import pyvista as pv
-
-    with warnings.catch_warnings(), pv.VtkErrorCatcher(raise_errors=True, send_to_logging=False):
-        warnings.simplefilter("ignore")
-        yield
-
-
 # --------------------------------------------------------------------------- reading
 
 
@@ -81,8 +70,9 @@ def read_triangles(path: Path, label: str) -> tuple[np.ndarray, np.ndarray]:
 
     require(path.is_file(), f"{label}: no such file {path}")
     require(path.stat().st_size > 0, f"{label}: the file is empty")
+    messages = []
     try:
-        with quiet_vtk():
+        with quiet_vtk(raise_errors=True) as messages:
             mesh = pv.read(path)
             if isinstance(mesh, pv.MultiBlock):
                 mesh = mesh.combine()
@@ -91,8 +81,9 @@ def read_triangles(path: Path, label: str) -> tuple[np.ndarray, np.ndarray]:
             lines = mesh.n_lines
             mesh = mesh.triangulate()
     except Exception as err:  # readers raise anything from ValueError to VTK execution errors
-        raise UserError(f"{label}: cannot read it as a surface ({str(err).splitlines()[0] if str(err) else type(err).__name__})") from None
-    require(mesh.n_points > 0, f"{label}: no points (empty or unreadable file)")
+        cause = messages[0] if messages else str(err).splitlines()[0] if str(err) else type(err).__name__
+        raise UserError(f"{label}: cannot read it as a surface ({cause})") from None
+    require(mesh.n_points > 0, f"{label}: no points ({messages[0] if messages else 'empty or unreadable file'})")
     require(mesh.n_cells > lines, f"{label}: only lines, no triangles (a 2D curve?); a surface needs triangles")
     points = np.asarray(mesh.points, dtype=float)
     require(np.isfinite(points).all(), f"{label}: NaN or infinite coordinates")
@@ -121,8 +112,11 @@ def directed_edges(triangles: np.ndarray) -> np.ndarray:
 
 
 def row_keys(rows: np.ndarray) -> np.ndarray:
-    """One integer per row of small non-negative integers (np.unique on rows is slow)."""
+    """One integer per row of non-negative integers, equal for equal rows (np.unique on
+    rows is slow); rows of numbers too large to combine get their rank among the rows."""
     base = int(rows.max(initial=0)) + 1
+    if base ** rows.shape[1] >= 2**63:
+        return np.unique(rows, axis=0, return_inverse=True)[1].ravel().astype(np.int64)
     keys = np.zeros(len(rows), np.int64)
     for column in rows.T:
         keys = keys * base + column
@@ -320,7 +314,7 @@ def cut_by_planes(shell: Shell, planes: list[tuple[np.ndarray, np.ndarray]]) -> 
 
     surface = pv.PolyData.from_regular_faces(shell.points, shell.triangles)
     for point, normal in planes:
-        with quiet_vtk():
+        with quiet_vtk(raise_errors=True):
             surface = _cut(surface, point, normal)
     points = np.asarray(surface.points, dtype=float)
     triangles = surface.faces.reshape(-1, 4)[:, 1:].astype(np.int64)

@@ -9,7 +9,7 @@ from pathlib import Path
 
 from mpi4py import MPI
 
-from fenics_elasto.errors import UserError, on_root, require
+from fenics_elasto.errors import UserError, require
 from fenics_elasto.interrupts import handle_signals
 from fenics_elasto.logs import log, show
 
@@ -22,7 +22,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("name", help="letter-a, cantilever or prostate-phantom")
     p.add_argument("--out", required=True, type=Path)
     p.add_argument("--size", type=float, default=None, help="element size (scene units)")
-    p.add_argument("--seed", type=int, default=0, help="phantom patient variation (0 = nominal)")
+    p.add_argument("--seed", type=int, default=None, help="phantom patient variation (0 = nominal)")
     p.add_argument("--atlas", type=Path, default=None,
                    help="phantom: mesh around this mesh's bladder and rectum (shared loaded nodes)")
     p.add_argument("--organ-size", type=float, default=None,
@@ -73,23 +73,17 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _mesh(args) -> None:
-    from fenics_elasto.atlas import atlas_surfaces
-    from fenics_elasto.meshing import build_scene
+    from fenics_elasto.commands import run_mesh
 
-    def build():  # gmsh meshes on one rank; its verdict goes to all
-        require(args.atlas is None or args.name == "prostate-phantom", "--atlas: only prostate-phantom takes an atlas")
-        atlas = atlas_surfaces(args.atlas) if args.atlas else None
-        return build_scene(args.name, args.out, args.size, args.seed, atlas,
-                           organ_size=args.organ_size, prostate_size=args.prostate_size)
-
-    log.info(f"wrote {on_root(MPI.COMM_WORLD, build)}")
+    path = run_mesh(args.name, args.out, args.size, args.seed, args.atlas,
+                    organ_size=args.organ_size, prostate_size=args.prostate_size)
+    log.info(f"wrote {path}")
 
 
 def _scene(args) -> None:
-    from fenics_elasto.anatomy import build_scene_from_spec
+    from fenics_elasto.commands import run_scene
 
-    path = on_root(MPI.COMM_WORLD, lambda: build_scene_from_spec(args.spec, args.out, args.size))
-    log.info(f"wrote {path}")
+    log.info(f"wrote {run_scene(args.spec, args.out, args.size)}")
 
 
 def _simulate(args) -> None:

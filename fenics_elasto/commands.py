@@ -10,7 +10,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from fenics_elasto.errors import require
+from fenics_elasto.errors import on_root, require
 from fenics_elasto.logs import log
 from fenics_elasto.outputs import prepare_file, prepare_folder
 
@@ -21,6 +21,33 @@ def reduced_basis(problem) -> np.ndarray | None:
 
     table = problem.scene.config["reduction"]
     return None if table is None else load_bases(problem.scene.path.parent / table["bases"], problem, table["rank"])
+
+
+def run_mesh(name: str, out: Path, size=None, seed=None, atlas_mesh: Path | None = None, **detail) -> Path:
+    """The ``mesh`` command: a built-in scene (.msh + problem.toml) into ``out``, checked
+    and locked first; gmsh on rank 0. Returns the problem.toml path."""
+    from mpi4py import MPI
+
+    from fenics_elasto.atlas import atlas_surfaces
+    from fenics_elasto.meshing import build_scene
+
+    def build():
+        require(atlas_mesh is None or name == "prostate-phantom", "--atlas: only prostate-phantom takes an atlas")
+        atlas = atlas_surfaces(atlas_mesh) if atlas_mesh else None
+        return build_scene(name, out, size, seed, atlas, **detail)
+
+    with prepare_folder(out):  # a bad --out costs nothing; a second run into it waits its turn
+        return on_root(MPI.COMM_WORLD, build)
+
+
+def run_scene(spec: Path, out: Path, size=None) -> Path:
+    """The ``scene`` command: a scene from organ surface files (anatomy.py) into ``out``."""
+    from mpi4py import MPI
+
+    from fenics_elasto.anatomy import build_scene_from_spec
+
+    with prepare_folder(out):
+        return on_root(MPI.COMM_WORLD, lambda: build_scene_from_spec(spec, out, size))
 
 
 def run_simulate(problem_path: Path, out: Path, overrides=()) -> dict:

@@ -637,7 +637,7 @@ def read_scene_spec(path, overrides=()) -> dict:
 
 def read_toml(path: Path, what: str = "problem file") -> dict:
     if not path.is_file():
-        raise UserError(f"{path}: no such {what}")
+        raise UserError(f"{path}: is a directory, not a {what}" if path.is_dir() else f"{path}: no such {what}")
     try:
         return tomllib.loads(path.read_text())
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as err:

@@ -281,6 +281,7 @@ def estimate(problem: InverseProblem, options: Options | None = None, basis: np.
             "are identifiable (scaling K and F together leaves u unchanged): fix one region's E as the reference")
     options = options or Options.from_scene(scene)
     phi_undeformed = check_overlap(problem)
+    extent_warnings = check_extent(problem)
     warnings = [w for w in [check_determined(problem, basis, options, choose_inner(problem, options, basis))] if w]
     estimator = Estimator(problem, options, basis)
     interrupted = False
@@ -292,7 +293,7 @@ def estimate(problem: InverseProblem, options: Options | None = None, basis: np.
         interrupted = True
         log.info("interrupted: writing the best result so far")
     theta, best, forces = estimator.final()
-    warnings += estimator.warnings + _warnings(estimator, theta, interrupted)
+    warnings += estimator.warnings + _warnings(estimator, theta, interrupted) + extent_warnings + _target_warnings(problem, best)
     for text in warnings:
         log.warning(text)
     record = _record(estimator, theta, best, phi_undeformed, warnings, interrupted, start)
@@ -326,6 +327,55 @@ def _warnings(estimator: Estimator, theta, interrupted: bool) -> list[str]:
     if fit is not None and fit["wall_motion_explained"] < 0.9:
         out.append(f"the bases explain {100 * fit['wall_motion_explained']:.0f} % of the wall motion surface "
                    "matching finds; train with more or other examples (e.g. --synthetic)")
+    return out
+
+
+EXTENT_RATIO = 1.5  # a target this much larger or smaller than the surface it matches is suspect
+UNITS_RATIO = 3.0  # ... and this much larger is never right (mm against cm is 10x): refused
+NOISE_RATIO = 3.0  # a final rms distance above this x [target] noise fits badly
+
+
+def check_extent(problem: InverseProblem) -> list[str]:
+    """A target that overlaps the source (check_overlap) can still be wrong: in other
+    units (10x larger) or of another part. Compare each target surface's extent with
+    the matched nodes it is compared with: more than UNITS_RATIO x larger is refused
+    (no elasticity turns a surface into one three times its size), beyond EXTENT_RATIO
+    either way is a warning (a partial segmentation is smaller and may be right)."""
+    out, misfit, spec = [], problem.misfit, problem.scene.config["target"] or {}
+    matched = problem.scene.matched
+    for rows, term in zip(misfit.slices, misfit.terms):
+        for i, surface in enumerate(getattr(term, "surfaces", [])):
+            name = f"target.surface ({spec['surface']})" if spec.get("surface") else \
+                f"target.surfaces.{matched[i]} ({spec['surfaces'][matched[i]]})"
+            own = problem.observation.points[rows][term.surface_of == i]
+            size = float(np.linalg.norm(np.ptp(own, axis=0))) if len(own) else 0.0
+            if size <= 0:
+                continue
+            ratio = surface.extent / size
+            message = (f"{name} spans {ratio:.3g} x the matched surface it is compared with "
+                       f"({surface.extent:.3g} vs {size:.3g}): in other units, or of another part?")
+            require(ratio <= UNITS_RATIO, message)
+            if not 1 / EXTENT_RATIO < ratio < EXTENT_RATIO:
+                out.append(message)
+    return out
+
+
+def _target_warnings(problem: InverseProblem, best: InnerResult) -> list[str]:
+    """The final rms distance against what the target can resolve: NOISE_RATIO x
+    [target] noise if given, else the target's mean edge length."""
+    out, spec = [], problem.scene.config["target"] or {}
+    surfaces = [s for term in problem.misfit.terms for s in getattr(term, "surfaces", [])]
+    distances = problem.distances(best.evaluation.residual)
+    for kind, distance in distances.items():
+        if spec.get("noise"):
+            scale, what = NOISE_RATIO * spec["noise"], f"{NOISE_RATIO:g} x target.noise"
+        elif kind == "surface" and surfaces:
+            scale, what = float(np.mean([s.mean_edge for s in surfaces])), "the target's mean edge length"
+        else:
+            continue
+        if distance["rms"] > scale:
+            out.append(f"the final rms {kind} distance {distance['rms']:.3g} is above {what} ({scale:.3g}): "
+                       "the model does not fit the target; check its units, frame and the set-up")
     return out
 
 

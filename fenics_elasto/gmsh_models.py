@@ -1,13 +1,23 @@
 """gmsh, quietly: fresh models with default options, meshing and saving with one-line
-errors, and facet groups read back as node rows or triangulations."""
+errors, and facet groups read back as node rows or triangulations.
+
+gmsh does not always raise: with our options it logs an error and goes on (a truncated
+file is "read", a surface mesh that overlaps itself leaves the volume empty). So its
+log is read after every merge and meshing (``gmsh_errors``), a meshed dimension must
+hold elements, and a mesh is checked (meshcheck.py) before it is saved or read.
+"""
 
 from __future__ import annotations
 
+import re
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
 
 from fenics_elasto.errors import UserError, require
+from fenics_elasto.interrupts import restore_handlers
+from fenics_elasto.meshcheck import check_mesh
 
 
 def fresh_gmsh_model(name: str):
@@ -17,6 +27,7 @@ def fresh_gmsh_model(name: str):
 
     if not gmsh.isInitialized():
         gmsh.initialize(interruptible=False)
+        restore_handlers()  # gmsh resets SIGTERM and SIGHUP to their default: they would kill the run
     gmsh.option.setNumber("General.Terminal", 0)
     gmsh.clear()
     gmsh.option.restoreDefaults()
@@ -25,15 +36,38 @@ def fresh_gmsh_model(name: str):
     return gmsh
 
 
-def open_msh(path: Path, name: str | None = None):
-    """A fresh gmsh model holding the mesh file ``path``; a missing or unreadable file
-    is one line naming it."""
-    require(Path(path).is_file(), f"{path}: no such mesh file")
-    gmsh = fresh_gmsh_model(name or Path(path).stem)
+@contextmanager
+def gmsh_errors():
+    """Collect gmsh's logged errors (and a raised one) into the yielded list; the
+    list is filled when the block ends."""
+    import gmsh
+
+    errors: list[str] = []
+    gmsh.logger.start()
     try:
+        yield errors
+    except Exception as err:  # gmsh raises a bare Exception carrying its last error
+        errors.append(str(err))
+    finally:
+        try:
+            logged = gmsh.logger.get()
+        except UnicodeDecodeError:  # gmsh quotes what it could not parse: bytes of a binary file
+            logged = ["Error: unreadable bytes"]
+        errors[:0] = [line.removeprefix("Error: ") for line in logged if line.startswith("Error")]
+        gmsh.logger.stop()
+
+
+def open_msh(path: Path, name: str | None = None):
+    """A fresh gmsh model holding the mesh file ``path``; a missing file, one that is
+    not a gmsh .msh, or one gmsh reports errors reading: one line naming it."""
+    path = Path(path)
+    require(path.is_file(), f"{path}: no such mesh file")
+    with open(path, "rb") as f:
+        require(f.read(11) == b"$MeshFormat", f"{path}: not a gmsh .msh file (it does not begin with $MeshFormat)")
+    gmsh = fresh_gmsh_model(name or path.stem)
+    with gmsh_errors() as errors:
         gmsh.merge(str(path))
-    except Exception as err:  # gmsh raises a bare Exception with its last error
-        raise UserError(f"{path}: gmsh cannot read it ({err})") from None
+    require(not errors, f"{path}: gmsh cannot read it ({errors[0] if errors else ''})")
     return gmsh
 
 
@@ -69,10 +103,33 @@ def physical_facets(gmsh, tdim: int) -> dict[str, np.ndarray]:
 
 
 def generate(gmsh, path: Path, dim: int) -> None:
-    try:
+    """Mesh up to ``dim``. gmsh may log an error and leave a dimension empty (a surface
+    mesh that overlaps itself: no tetrahedra) without raising: that is a failure too,
+    named by the group of the surface gmsh blames."""
+    with gmsh_errors() as errors:
         gmsh.model.mesh.generate(dim)
-    except Exception as err:  # gmsh raises a bare Exception with its last error
-        raise UserError(f"gmsh could not mesh {path.name} at this size ({err}); try another --size") from None
+    if errors or not sum(len(t) for t in gmsh.model.mesh.getElements(dim)[1]):
+        cause = (errors or ["no elements"])[-1]
+        groups = _blamed(gmsh, cause)
+        raise MeshingFailed(f"gmsh could not mesh {path.name} at this size ({cause}"
+                            f"{': ' + ', '.join(groups) if groups else ''}); try another --size", groups)
+
+
+class MeshingFailed(UserError):
+    """gmsh failed; ``groups``: the physical groups of the surfaces it blames."""
+
+    def __init__(self, message: str, groups: list[str]):
+        super().__init__(message)
+        self.groups = groups
+
+
+def _blamed(gmsh, message: str) -> list[str]:
+    """The physical groups of the surfaces or curves a gmsh message names."""
+    names = set()
+    for word, dim in (("surface", 2), ("curve", 1)):
+        for tag in map(int, re.findall(rf"{word} (\d+)", message, flags=re.IGNORECASE)):
+            names |= {gmsh.model.getPhysicalName(dim, g) for g in gmsh.model.getPhysicalGroupsForEntity(dim, tag)}
+    return sorted(names - {""})
 
 
 def write_msh(gmsh, path: Path, dim: int) -> None:
@@ -81,6 +138,8 @@ def write_msh(gmsh, path: Path, dim: int) -> None:
 
 
 def save(gmsh, path: Path) -> None:
+    """Check the mesh as a scene reader will (meshcheck.py), then write it."""
+    check_mesh(gmsh, f"{path.name} as meshed", max(d for d, _ in gmsh.model.getPhysicalGroups()))
     path.parent.mkdir(parents=True, exist_ok=True)
     gmsh.option.setNumber("Mesh.MshFileVersion", 4.1)
     gmsh.option.setNumber("Mesh.SaveAll", 0)
@@ -107,8 +166,12 @@ def physical_surfaces(gmsh) -> dict[str, tuple[np.ndarray, np.ndarray]]:
 
 
 def read_surfaces(msh: Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """The facet groups of a 3D .msh file as (points, triangles)."""
-    require(Path(msh).is_file(), f"{msh}: no such mesh file")
-    with GmshModel("surfaces") as gmsh:
-        gmsh.merge(str(msh))
+    """The facet groups of a 3D .msh file as (points, triangles); a file that is not a
+    sound 3D mesh (meshcheck.py): one line."""
+    gmsh = open_msh(msh, "surfaces")
+    try:
+        require(gmsh.model.getPhysicalGroups(3), f"{msh}: not a 3D mesh with physical groups")
+        check_mesh(gmsh, str(msh), 3)
         return physical_surfaces(gmsh)
+    finally:
+        gmsh.clear()

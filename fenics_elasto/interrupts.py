@@ -92,6 +92,19 @@ def handle_signals(comm=None):
         _state = saved
 
 
+def restore_handlers() -> None:
+    """Install Python's handlers of SIGINT, SIGTERM and SIGHUP again at the C level,
+    after a library reset them behind Python's back: ``gmsh.initialize`` sets SIGTERM
+    and SIGHUP to their default (the process dies at once, nothing written) while
+    ``signal.getsignal`` still shows our handler. Main thread only; a no-op elsewhere."""
+    if threading.current_thread() is not threading.main_thread():
+        return
+    for s in SIGNALS:
+        handler = signal.getsignal(s)
+        if handler is not None:
+            signal.signal(s, handler)
+
+
 def check_interrupt(comm=None, context: str = "") -> None:
     """Raise ``Interrupted`` (the signals' names, then ``context``) if a signal arrived
     and has not interrupted yet.

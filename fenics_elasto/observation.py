@@ -23,7 +23,7 @@ from dolfinx import la
 from scipy.spatial import cKDTree
 
 from fenics_elasto.elasticity import ElasticModel, NodeSet
-from fenics_elasto.errors import require
+from fenics_elasto.errors import UserError, require
 
 
 def matched_vertices_only(scene, model: ElasticModel) -> bool:
@@ -140,7 +140,10 @@ class Observation:
         self.landmarks = np.zeros((0, self.gdim)) if landmarks is None else np.asarray(landmarks, float)
         size = np.ptp(model.dof_coords, axis=0).max() if len(model.dof_coords) else 0.0
         size = model.comm.allreduce(size, op=MPI.MAX)
-        self.probe = PointProbe(model.V, self.landmarks, tolerance=0.02 * size) if len(self.landmarks) else None
+        try:
+            self.probe = PointProbe(model.V, self.landmarks, tolerance=0.02 * size) if len(self.landmarks) else None
+        except UserError as err:  # name the file the points came from
+            raise UserError(f"{scene.path.parent / (scene.config['target'] or {}).get('landmarks', '')}: {err}") from None
         self.points = np.concatenate([self.node_points, self.landmarks])
 
     @property

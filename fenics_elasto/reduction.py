@@ -12,6 +12,7 @@ The examples are not centred: the span of W must contain the examples themselves
 
 from __future__ import annotations
 
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -51,8 +52,9 @@ class Bases:
     @staticmethod
     def read(path: Path) -> "Bases":
         require(path.is_file(), f"{path}: no such bases file")
+        require(zipfile.is_zipfile(path), f"{path}: not a bases file from `fenics-elasto train` (not an .npz archive)")
         try:
-            data = np.load(path)
+            data = np.load(path, allow_pickle=False)
             groups = data["atlas_groups"].tolist() if "atlas_groups" in data else []
             atlas = {g: (data[f"atlas_points_{g}"], data[f"atlas_triangles_{g}"]) for g in groups}
             held_out = float(data["held_out"]) if "held_out" in data else np.nan
@@ -79,8 +81,12 @@ class Bases:
             return from_atlas(self.W, atlas_order(problem, self.atlas))
         coords = problem.loaded.gather(problem.loaded.coords)
         same = self.loaded_coords.shape == coords.shape and np.allclose(self.loaded_coords, coords, atol=1e-9)
-        require(same, f"the bases were trained on other loaded nodes ({len(self.loaded_coords)} nodes) than "
-                      f"{problem.scene.path.name}'s ({len(coords)}); train them on this mesh or around an atlas")
+        if not same and self.loaded_coords.shape == coords.shape:
+            where = f"{len(coords)} nodes as here, but up to {np.abs(self.loaded_coords - coords).max():.3g} away"
+        else:
+            where = f"{len(self.loaded_coords)} nodes, here {len(coords)}"
+        require(same, f"the bases were trained on other loaded nodes than {problem.scene.path.name}'s ({where}); "
+                      "train them on this mesh or around an atlas")
         return self.W
 
 
@@ -99,14 +105,31 @@ def pca(examples: np.ndarray, rank: int, first: np.ndarray | None = None) -> tup
 
 
 def example_target(problem: InverseProblem, path: Path) -> SurfaceTerm:
-    """A training target: one surface file, or a folder of surface_<group>.vtp files."""
+    """A training target: one surface file, or a folder of surface_<group>.vtp files;
+    refused if it does not lie on the matched surface."""
     scene = problem.scene
     if path.is_dir():
         files = [path / f"surface_{g}.vtp" for g in scene.matched]
         missing = [str(f) for f in files if not f.is_file()]
         require(not missing, f"{path}: example folder lacks {', '.join(missing)}")
-        return SurfaceTerm([read_surface(f, scene.gdim) for f in files], problem.node_groups())
-    return SurfaceTerm([read_surface(path, scene.gdim)], np.zeros(len(problem.matched_coords), int))
+        term = SurfaceTerm([read_surface(f, scene.gdim) for f in files], problem.node_groups())
+    else:
+        term = SurfaceTerm([read_surface(path, scene.gdim)], np.zeros(len(problem.matched_coords), int))
+    _check_overlap(problem, term, path)
+    return term
+
+
+OVERLAP = 0.25  # an example further from the matched surface than this x its size is elsewhere (as estimate's target)
+
+
+def _check_overlap(problem: InverseProblem, term: SurfaceTerm, path: Path) -> None:
+    """The example must deform the matched surface, not lie beside it: the same rule
+    as for estimate's target (rms distance under a quarter of the matched size)."""
+    y = problem.matched_coords
+    distance = float(np.sqrt(np.mean(np.sum(term.residual(y) ** 2, axis=1)))) if len(y) else 0.0
+    size = float(np.linalg.norm(np.ptp(y, axis=0))) if len(y) else 0.0
+    require(distance < OVERLAP * size, f"{path}: the example does not overlap the matched surface (rms distance "
+                                       f"{distance:.3g} vs matched size {size:.3g}); is it in the same units and frame?")
 
 
 def example_displacements(problem: InverseProblem, targets) -> np.ndarray:

@@ -81,7 +81,8 @@ def read_result_folder(folder: Path) -> dict:
     from fenics_elasto.surface import read_polydata
 
     folder = Path(folder)
-    require(folder.is_dir(), f"{folder}: no such result folder")
+    require(folder.is_dir(), f"{folder}: not a folder (a result folder is expected)" if folder.exists()
+            else f"{folder}: no such result folder")
     files = sorted(folder.glob("surface_*.vtp"))
     require(bool(files), f"{folder}: no surface_*.vtp files (is it a result folder?)")
     groups = {f.stem.removeprefix("surface_"): read_polydata(f) for f in files}

@@ -23,6 +23,7 @@ from fenics_elasto.config import PROBLEM, apply_overrides, check_gdim, read_toml
 from fenics_elasto.errors import UserError, on_root, require
 from fenics_elasto.gmsh_models import open_msh, physical_facets
 from fenics_elasto.logs import log
+from fenics_elasto.meshcheck import check_mesh
 
 ELASTIC_KEYS = ("E", "nu")
 
@@ -181,6 +182,10 @@ def read_msh(path: Path, comm=MPI.COMM_WORLD):
         require(tdim == 3 or np.allclose(coords[:, 2], 0), f"{path}: a 2D mesh must lie in the z = 0 plane")
         cell_groups = [t for d, t in groups if d == tdim]
         require(cell_groups, f"{path}: no cell (region) physical groups")
+        unnamed = [t for t in cell_groups if not gmsh.model.getPhysicalName(tdim, t)]
+        require(not unnamed, f"{path}: cell physical group(s) {unnamed} have no name; the problem file names "
+                             "each region's material (gmsh: Physical Volume(\"name\") = ...)")
+        check_mesh(gmsh, str(path), tdim)
         facet_rows.update(physical_facets(gmsh, tdim))
         return tdim, sorted(facet_rows)
 

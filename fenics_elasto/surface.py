@@ -13,6 +13,7 @@ equal to 1e-15.
 from __future__ import annotations
 
 import logging
+import re
 import warnings
 from contextlib import contextmanager
 from pathlib import Path
@@ -65,6 +66,17 @@ class Surface:
     def closest(self, x: np.ndarray) -> np.ndarray:
         return self._query(x)[1]
 
+    @property
+    def extent(self) -> float:
+        """The diagonal of the bounding box."""
+        return float(np.linalg.norm(np.ptp(self.points, axis=0))) if len(self.points) else 0.0
+
+    @property
+    def mean_edge(self) -> float:
+        """The mean edge length: how finely the surface resolves a shape."""
+        corners = self.points[self.cells]
+        return float(np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2).mean()) if len(self.cells) else 0.0
+
     def _query(self, x):
         x = np.ascontiguousarray(x, dtype=np.float64)
         if len(x) == 0:
@@ -114,23 +126,43 @@ class Surface:
 
 
 @contextmanager
-def quiet_vtk():
-    """VTK's messages (pyvista hands them to the root logger) and pyvista's warnings kept
-    from the terminal; yields the list of VTK messages, for an error line."""
+def quiet_vtk(raise_errors: bool = False):
+    """VTK kept off the terminal: its logger silenced, the errors of its output window
+    caught, what pyvista hands to the root logger kept, pyvista's warnings ignored.
+    Yields the list of VTK's messages (first line each, errors first; filled at the
+    end of the block), for an error line. ``raise_errors``: a VTK error raises
+    pyvista's ``VTKExecutionError`` at the end of the block."""
+    import pyvista as pv
+
     root = logging.getLogger()
     messages: list[str] = []
+    logged: list[str] = []
 
     class Keep(logging.Handler):
         def emit(self, record):
-            messages.append(record.getMessage().splitlines()[0])
+            logged.append(record.getMessage().splitlines()[0])
 
     saved, root.handlers = root.handlers, [Keep()]  # a handler there: no basicConfig on logging.error
     try:
-        with warnings.catch_warnings():
+        with pv.vtk_verbosity("off"), warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            yield messages
+            catcher = pv.VtkErrorCatcher(raise_errors=raise_errors, send_to_logging=False)
+            try:
+                with catcher:
+                    yield messages
+            finally:
+                texts = [str(getattr(event, "alert", event)) for event in catcher.error_events] + logged
+                messages += [_vtk_text(text) for text in texts if text.strip()]
     finally:
         root.handlers = saved
+
+
+def _vtk_text(text: str) -> str:
+    """A VTK message as one line, without object addresses ("Algorithm vtkPLYReader
+    (0x...) returned failure for request: ..." says: vtkPLYReader failed)."""
+    text = text.strip().splitlines()[0]
+    failed = re.match(r"Algorithm (\w+) .*returned failure", text)
+    return f"{failed.group(1)} failed" if failed else re.sub(r" \(0x[0-9a-f]+\)", "", text)
 
 
 def read_polydata(path: Path, what: str = "surface"):
@@ -138,6 +170,7 @@ def read_polydata(path: Path, what: str = "surface"):
     import pyvista as pv
 
     path = Path(path)
+    require(not path.is_dir(), f"{path}: is a directory, not a {what} file")
     require(path.is_file(), f"{path}: no such {what} file")
     with quiet_vtk() as messages:
         try:
@@ -184,12 +217,19 @@ def _segments(lines: np.ndarray) -> np.ndarray:
 
 def read_landmarks(path: Path, gdim: int) -> tuple[np.ndarray, np.ndarray]:
     """CSV rows ``source point, target point`` (2*gdim numbers; a header line is allowed)."""
+    require(not path.is_dir(), f"{path}: is a directory, not a landmark file")
     require(path.is_file(), f"{path}: no such landmark file")
     try:
-        data = np.loadtxt(path, delimiter=",", ndmin=2, comments="#",
-                          skiprows=1 if not _is_numeric_line(path.read_text().splitlines()[0]) else 0)
-    except (ValueError, IndexError) as err:
+        lines = path.read_text().splitlines()
+        require(any(line.strip() and not line.lstrip().startswith("#") for line in lines[1:] + lines[:1]),
+                f"{path}: no landmark rows (an empty file)")
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # numpy warns of a header-only file: said below
+            data = np.loadtxt(path, delimiter=",", ndmin=2, comments="#",
+                              skiprows=1 if not _is_numeric_line(lines[0]) else 0)
+    except ValueError as err:
         raise UserError(f"{path}: cannot read landmarks ({err})") from None
+    require(data.size > 0, f"{path}: no landmark rows (only a header)")
     require(data.shape[1] == 2 * gdim,
             f"{path}: expected {2 * gdim} columns (source point, target point) for a {gdim}D scene, got {data.shape[1]}")
     require(np.isfinite(data).all(), f"{path}: landmarks contain NaN or infinite values")
