@@ -191,4 +191,5 @@ def write_solution(folder, scene, u: fem.Function, target=None, title: str = "")
         context = gather_entities(u, tdim - 1, dolfinx.mesh.exterior_facet_indices(scene.mesh.topology))
     write_matched_surfaces(folder.path, scene, u, place=folder.path_for)
     if scene.comm.rank == 0:
-        render(folder.path_for("screenshot.png"), deformed, reference, polydata(*context), target, title, dim=scene.gdim)
+        render(folder.path_for("screenshot.png"), deformed, reference, polydata(*context), target, title,
+               dim=scene.gdim, fixed=scene.fixed, units=scene.config.get("units") or "")
