@@ -8,7 +8,7 @@ STAMP := $(VENV)/.installed
 PYTHON ?= $(shell for p in python3.13 python3.12 python3 $$(ls -d $$HOME/.pyenv/versions/3.1[2-9]*/bin/python3 /usr/bin/python3.1[2-9] 2>/dev/null); do \
   $$p -c 'import sys; sys.exit(sys.version_info < (3, 12))' >/dev/null 2>&1 && echo $$p && break; done)
 
-.PHONY: demo demo-quick demo-accurate test test-fast bench lint clean
+.PHONY: demo demo-quick demo-accurate demo-prostate demo-prostate-quick test test-fast bench lint clean
 
 $(STAMP): pyproject.toml
 	@test -n "$(PYTHON)" || { echo "error: no python >= 3.12 found on PATH" >&2; exit 2; }
@@ -27,6 +27,14 @@ demo-quick: $(STAMP)
 # instead of ~4 %, at ~3x the time (see README).
 demo-accurate: $(STAMP)
 	$(PY) demos/prostate_elastography.py --organ-size 0.2 --out out/demo-accurate
+
+# The real prostate surface (fenics_elasto/meshes/prostate) with a bladder and a rectum
+# written by the demo: scene -> simulate -> image-like targets -> train --synthetic -> estimate.
+demo-prostate: $(STAMP)
+	$(PY) demos/real_prostate.py --out out/prostate
+
+demo-prostate-quick: $(STAMP)
+	$(PY) demos/real_prostate.py --quick --out out/prostate-quick
 
 test: $(STAMP)
 	$(PY) -m pytest -q

@@ -52,6 +52,7 @@ def run_scene(spec: Path, out: Path, size=None) -> Path:
 
 def run_simulate(problem_path: Path, out: Path, overrides=()) -> dict:
     from fenics_elasto.io import write_solution
+    from fenics_elasto.render import caption
     from fenics_elasto.scene import load_scene
     from fenics_elasto.simulate import simulate
 
@@ -59,7 +60,7 @@ def run_simulate(problem_path: Path, out: Path, overrides=()) -> dict:
         scene = load_scene(problem_path, overrides, command="simulate")
         sim = simulate(scene)
         with folder.writing(sim.result):
-            write_solution(folder, scene, sim.u, title=f"simulate: {Path(problem_path).parent.name}")
+            write_solution(folder, scene, sim.u, title=caption(sim.result, Path(out).name, units(scene)))
     log.info(f"dofs {sim.result['dofs']}, max |u| {sim.result['max_displacement']:.4g}, "
              f"{sim.result['wall_time_s']:.2f} s -> {out}")
     return sim.result
@@ -141,16 +142,20 @@ def absolute_paths(scene, table: str) -> dict:
 def write_estimate(folder, problem, result) -> None:
     """An estimate's files into an OutputFolder (inside its ``writing()``)."""
     from fenics_elasto.io import point_csv, write_solution
-    from fenics_elasto.render import plot_convergence, target_polydata
+    from fenics_elasto.render import caption, plot_convergence, target_polydata
 
     scene = problem.scene
     target = target_polydata(problem) if scene.comm.rank == 0 else None
-    write_solution(folder, scene, result.u, target=target, title=title(result))
+    write_solution(folder, scene, result.u, target=target, title=caption(result.record, folder.path.name, units(scene)))
     points = problem.loaded.gather(problem.loaded.coords)
     if scene.comm.rank == 0:
         target.save(folder.path_for("target.vtp"))
         plot_convergence(result.record, folder.path_for("convergence.png"))
         folder.write_text("forces.csv", point_csv(points, result.forces.reshape(len(points), -1), "f"))
+
+
+def units(scene) -> str:
+    return scene.config.get("units") or ""
 
 
 def title(result) -> str:

@@ -114,4 +114,5 @@ def write_solution(folder, scene, u: fem.Function, target=None, title: str = "")
         data = {g: matched[g] if g in matched else data[g] for g in shown}
         deformed = {g: polydata(*d) for g, d in data.items()}
         reference = {g: polydata(*d, deformed=False) for g, d in data.items()}
-        render(folder.path_for("screenshot.png"), deformed, reference, polydata(*context), target, title, dim=scene.gdim)
+        render(folder.path_for("screenshot.png"), deformed, reference, polydata(*context), target, title,
+               dim=scene.gdim, fixed=scene.fixed, units=scene.config.get("units") or "")
