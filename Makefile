@@ -48,10 +48,9 @@ bench: $(STAMP)
 	$(PY) benchmarks/reduced.py
 	$(PY) benchmarks/convergence.py
 
-# pyflakes; "imported but unused" is expected only for `import fenics_elasto` / `dolfinx_solver`
-# (imported first for its side effect: the wheel's MPI/PETSc order).
+# ruff: pyflakes, pycodestyle, pyupgrade and bugbear checks (configured in pyproject.toml).
 lint: $(STAMP)
-	@! $(PY) -m pyflakes fenics_elasto tests benchmarks demos | grep -vE "'(fenics_elasto|dolfinx_solver)' imported but unused"
+	$(PY) -m ruff check fenics_elasto tests benchmarks demos
 
 clean:
 	rm -rf $(VENV) out .pytest_cache

@@ -109,7 +109,8 @@ def estimates(tmp: Path, size: float) -> None:
     targets = simulate_targets(tmp / "targets", TRUE_E, FINE, source=source)
     rows = []
     for E in TRUE_E:
-        rows.append((E, run_case(source, targets[E].settings(landmarks=True)), run_case(source, targets[E].settings(landmarks=True), W)))
+        settings = targets[E].settings(landmarks=True)
+        rows.append((E, run_case(source, settings), run_case(source, settings, W)))
         print(f"  E = {E:g}: full {recovered(rows[-1][1]):.2f} ({rows[-1][1]['seconds']:.1f} s), "
               f"reduced {recovered(rows[-1][2]):.2f} ({rows[-1][2]['seconds']:.1f} s)", flush=True)
     print("\n" + "\n".join(speedup_table(rows, trainer.force_dofs, 12)))

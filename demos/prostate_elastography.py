@@ -134,7 +134,8 @@ def main():
     print("4. speed-up: full force space against reduced, landmark targets", flush=True)
     speedups = []
     for E in cases:
-        speedups.append((E, run_case(source, targets[E].settings(landmarks=True)), run_case(source, targets[E].settings(landmarks=True), bases.W)))
+        settings = targets[E].settings(landmarks=True)
+        speedups.append((E, run_case(source, settings), run_case(source, settings, bases.W)))
         print(f"   true E = {E:g}: full {recovered(speedups[-1][1]):.2f} ({speedups[-1][1]['seconds']:.1f} s), "
               f"reduced {recovered(speedups[-1][2]):.2f} ({speedups[-1][2]['seconds']:.1f} s)", flush=True)
     lines += [""] + speedup_table(speedups, trainer.force_dofs, rank)

@@ -275,7 +275,8 @@ def closed_shells(path: Path, label: str, role: str, name: str) -> list[Shell]:
     triangles = _orient_consistently(triangles, label)
     points, triangles = _fill_holes(points, triangles, label)
     _, _, count = edge_use(triangles)
-    require((count == 2).all(), f"{label}: cannot be made a closed surface ({np.sum(count != 2)} edges not shared by two triangles)")
+    require((count == 2).all(),
+            f"{label}: cannot be made a closed surface ({np.sum(count != 2)} edges not shared by two triangles)")
     triangles, component = _orient_outward(points, triangles, label)
     shells = [_shell(role, name, label, points, triangles[component == c]) for c in range(component.max() + 1)]
     for shell in shells:  # one by one: a piece inside another sees winding number 2, rightly

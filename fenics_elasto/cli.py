@@ -105,7 +105,8 @@ def _train(args) -> None:
     from fenics_elasto.synthetic import Generator
 
     patients = ([(args.problem, args.examples)] if args.problem else []) + [(p, e) for p, *e in args.patient]
-    require(patients, "train: give PROBLEM.toml --examples ... or --synthetic N, or --atlas with --patient PROBLEM.toml EXAMPLE...")
+    require(patients, "train: give PROBLEM.toml --examples ... or --synthetic N, "
+                      "or --atlas with --patient PROBLEM.toml EXAMPLE...")
     require(not args.examples or args.problem, "train: --examples belong to a PROBLEM.toml (first argument)")
     generator = None
     if args.synthetic is not None:

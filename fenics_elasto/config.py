@@ -83,7 +83,7 @@ class Where:
     keys: tuple = ()
     overrides: dict = field(default_factory=dict, compare=False)
 
-    def at(self, key) -> "Where":
+    def at(self, key) -> Where:
         return Where(self.source, self.keys + (key,), self.overrides)
 
     def label(self) -> str:

@@ -92,7 +92,7 @@ class NodeSet:
     comm: MPI.Comm
 
     @classmethod
-    def create(cls, blocks, coords, comm) -> "NodeSet":
+    def create(cls, blocks, coords, comm) -> NodeSet:
         stacked = np.concatenate(comm.allgather(coords))
         order = np.lexsort(np.round(stacked, 10).T[::-1]) if len(stacked) else np.zeros(0, int)
         inverse = np.empty_like(order)

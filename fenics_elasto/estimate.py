@@ -50,7 +50,7 @@ class Options:
     allow_undetermined: bool = False  # run a set-up the data cannot determine (with a warning)
 
     @classmethod
-    def from_scene(cls, scene) -> "Options":
+    def from_scene(cls, scene) -> Options:
         """The scene's [optimizer] table (checked and completed by config.py)."""
         return cls(**scene.config["optimizer"])
 

@@ -80,7 +80,7 @@ class GaussNewton:
         q = self.q0.copy()
         y, residual, phi, prior = evaluate(q)
         damping, nit, converged = 1e-3, 0, False
-        for nit in range(1, self.maxiter + 1):
+        for nit in range(1, self.maxiter + 1):  # noqa: B007 (nit is reported after the loop)
             A = self._curvature_rows(J, y)
             H = A.T @ A + self.alpha * np.eye(r)
             grad = flat.T @ misfit.gradient(residual).ravel() + self.alpha * (q - self.q0)

@@ -209,7 +209,8 @@ def build_prostate_phantom(out: Path, size: float | None = None, seed: int = 0, 
                 if bone_size is not None or err.groups != ["bones"]:
                     raise
     c = organs["bladder"]["center"]
-    return _write_toml(out, "phantom.toml", inflation=0.1, inflation_percent="10%", cx=f"{c[0]:.4f}", cy=f"{c[1]:.4f}", cz=f"{c[2]:.4f}")
+    return _write_toml(out, "phantom.toml", inflation=0.1, inflation_percent="10%",
+                       cx=f"{c[0]:.4f}", cy=f"{c[1]:.4f}", cz=f"{c[2]:.4f}")
 
 
 def _phantom_geometry(gmsh, organs: dict, seed: int) -> dict[str, list[int]]:

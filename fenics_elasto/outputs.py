@@ -243,7 +243,7 @@ class OutputFolder:
         self._locked = comm.rank == 0
         self._released = False
 
-    def __enter__(self) -> "OutputFolder":
+    def __enter__(self) -> OutputFolder:
         return self
 
     def __exit__(self, *exc) -> None:

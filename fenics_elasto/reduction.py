@@ -37,7 +37,7 @@ class Bases:
     atlas: dict | None = None  # group -> (points, triangles): W is in atlas numbering
     held_out: float | None = None  # share of left-out examples' energy the bases keep (held_out_energy)
 
-    def truncated(self, rank: int) -> "Bases":
+    def truncated(self, rank: int) -> Bases:
         require(1 <= rank <= self.W.shape[1], f"rank {rank} outside 1..{self.W.shape[1]} (the trained bases)")
         return Bases(self.W[:, :rank], self.variance[:rank], self.loaded_coords, self.examples, self.atlas)
 
@@ -50,7 +50,7 @@ class Bases:
                  atlas_groups=np.array(list(self.atlas or {}), dtype=str), **surfaces)
 
     @staticmethod
-    def read(path: Path) -> "Bases":
+    def read(path: Path) -> Bases:
         require(path.is_file(), f"{path}: no such bases file")
         require(zipfile.is_zipfile(path), f"{path}: not a bases file from `fenics-elasto train` (not an .npz archive)")
         try:
@@ -70,7 +70,8 @@ class Bases:
         W, coords = self.W, self.loaded_coords
         require(W.ndim == 2 and W.shape[1] >= 1 and coords.ndim == 2 and W.shape[0] == coords.size,
                 f"{path}: W {W.shape} does not fit its {coords.shape[0]} loaded nodes; train the bases again")
-        require(np.isfinite(W).all() and np.isfinite(coords).all(), f"{path}: W holds NaN or infinite values; train the bases again")
+        require(np.isfinite(W).all() and np.isfinite(coords).all(),
+                f"{path}: W holds NaN or infinite values; train the bases again")
         gram = W.T @ W
         require(np.abs(gram - np.eye(len(gram))).max() < 1e-6, f"{path}: W's columns are not orthonormal; train the bases again")
 

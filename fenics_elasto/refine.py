@@ -41,7 +41,7 @@ import itertools
 import os
 import time
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cache
 from pathlib import Path
 
 import numpy as np
@@ -139,7 +139,7 @@ class Split:
     diagonals: np.ndarray  # (variants, 2) lattice points at the ends of each variant's diagonal
 
 
-@lru_cache(maxsize=None)
+@cache
 def split_of(etype: int) -> Split:
     import gmsh
 

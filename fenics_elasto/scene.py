@@ -88,7 +88,7 @@ class Scene:
     def material(self, name: str) -> Material:
         return next(m for m in self.materials if m.name == name)
 
-    def parameters(self) -> "Parameters":
+    def parameters(self) -> Parameters:
         return Parameters(self)
 
 

@@ -48,7 +48,7 @@ from __future__ import annotations
 
 from collections import OrderedDict
 from dataclasses import asdict, dataclass
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 from mpi4py import MPI
@@ -90,7 +90,7 @@ class SolverSettings:
     blr: float = 0.0  # direct: MUMPS block low-rank tolerance, 0 = off
 
     @classmethod
-    def from_config(cls, table: dict | None) -> "SolverSettings":
+    def from_config(cls, table: dict | None) -> SolverSettings:
         table = table or {}
         return cls(**{key: table[key] for key in ("method", "rtol", "factor", "blr") if key in table})
 
@@ -360,7 +360,7 @@ def _residual(K: PETSc.Mat, B, X):
 class IterativeSolver(LinearSolver):
     """CG + GAMG (rigid-body near-nullspace), warm-started; checked after every solve."""
 
-    def __init__(self, K, clamped, settings, stats, modes: PETSc.NullSpace, warm: "WarmStart"):
+    def __init__(self, K, clamped, settings, stats, modes: PETSc.NullSpace, warm: WarmStart):
         super().__init__(K, clamped, settings, stats)
         K.setNearNullSpace(modes)
         self.warm = warm

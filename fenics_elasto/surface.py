@@ -176,7 +176,8 @@ def read_polydata(path: Path, what: str = "surface"):
         try:
             mesh = pv.read(str(path))
         except Exception as err:  # readers raise many kinds
-            raise UserError(f"{path}: cannot read the {what} ({str(err).splitlines()[0] if str(err) else type(err).__name__})") from None
+            reason = str(err).splitlines()[0] if str(err) else type(err).__name__
+            raise UserError(f"{path}: cannot read the {what} ({reason})") from None
     require(mesh is not None and mesh.n_points > 0,
             f"{path}: cannot read the {what}" + (f" ({messages[0]})" if messages else " (no points)"))
     return mesh
@@ -200,7 +201,8 @@ def read_surface(path: Path, gdim: int) -> Surface:
         return Surface(points[:, :2], lines)
     tri = mesh.triangulate()
     faces = tri.faces.reshape(-1, 4)[:, 1:] if tri.faces.size else np.empty((0, 3), np.int64)
-    require(len(faces) > 0, f"{path}: a 3D scene needs a triangle surface target (got {'a 2D polyline' if flat else 'no triangles'})")
+    got = "a 2D polyline" if flat else "no triangles"
+    require(len(faces) > 0, f"{path}: a 3D scene needs a triangle surface target (got {got})")
     return Surface(np.asarray(tri.points, float), faces)
 
 

@@ -22,7 +22,7 @@ def test_letter_a_poisson_demo_beats_the_paper(tmp_path):
     stdout = run_demo("letter_a_poisson.py", "--out", tmp_path)
     rows = re.findall(r"^\| (0\.\d+) \| (0\.\d+) \| ([\d.]+) \| ([\d.]+) \|", stdout, re.M)
     assert len(rows) == 4, stdout
-    for true, found, error, seconds in rows:
+    for true, found, error, _seconds in rows:
         assert float(error) < 2.0, (true, found, error)
     assert_picture(tmp_path / "letter_a_poisson.png")
 

@@ -178,5 +178,6 @@ def test_target_far_from_the_source(letter_source, letter_target, tmp_path, caps
 
 def test_bad_landmarks(letter_source, tmp_path, capsys):
     (tmp_path / "lm.csv").write_text("1,2,3\n4,5,6\n")
-    _expect_error(capsys, ["estimate", letter_source, "--out", tmp_path, "--set", f"target={{landmarks='{tmp_path / 'lm.csv'}'}}"],
+    _expect_error(capsys, ["estimate", letter_source, "--out", tmp_path,
+                           "--set", f"target={{landmarks='{tmp_path / 'lm.csv'}'}}"],
                   "columns")

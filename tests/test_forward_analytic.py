@@ -24,7 +24,8 @@ def timoshenko(x, y, mod=np):
     G = E / (2 * (1 + NU))
     ux = (-P * x**2 * y / (2 * E * inertia) - NU * P * y**3 / (6 * E * inertia) + P * y**3 / (6 * inertia * G)
           + (P * L**2 / (2 * E * inertia) - P * C**2 / (2 * inertia * G)) * y)
-    uy = NU * P * x * y**2 / (2 * E * inertia) + P * x**3 / (6 * E * inertia) - P * L**2 * x / (2 * E * inertia) + P * L**3 / (3 * E * inertia)
+    uy = (NU * P * x * y**2 / (2 * E * inertia) + P * x**3 / (6 * E * inertia)
+          - P * L**2 * x / (2 * E * inertia) + P * L**3 / (3 * E * inertia))
     return ux, uy
 
 
