@@ -24,7 +24,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from fenics_elasto.errors import UserError, require
-from fenics_elasto.functional import Profile, SurrogateProfile, minimize_on_surrogate, minimize_profile
+from fenics_elasto.functional import (Profile, SurrogateProfile, minimize_on_surrogate, minimize_profile,
+                                     surrogate_scan)
 from fenics_elasto.logs import log
 from fenics_elasto.inner import GaussNewton, InnerResult, LBFGS
 from fenics_elasto.interrupts import Interrupted
@@ -211,17 +212,22 @@ class Estimator:
         """Scan, check the data determine the materials, minimise Phi*, polish."""
         n = self.options.scan if len(self.params) == 1 else max(2, min(self.options.scan, 3))
         points = self.params.scan(n) if self.options.scan > 1 else []  # scan = 1: the initial values only
-        if self.surrogate is None or not points:
-            points = [self.params.initial] + points
-        log.info(f"scan of {len(points)} material values (start: surface matching; inner: {self.inner_name})")
-        for theta in points:
-            self.profile.solve(theta, "scan", self._start_for(theta))
-        self.check_identifiable()
         xtol = self.options.outer_xtol * np.where(self.params.is_E, 1.0, 0.1)
         if self.surrogate is None:
+            points = [self.params.initial] + points
+            log.info(f"scan of {len(points)} material values (start: surface matching; inner: {self.inner_name})")
+            for theta in points:
+                self.profile.solve(theta, "scan", self._start_for(theta))
+            self.check_identifiable()
             self.outer_iterations = minimize_profile(self.profile, xtol, self.options.outer_maxiter)
-        else:
-            self.outer_iterations = minimize_on_surrogate(self.profile, self.surrogate, xtol, self.options.outer_maxiter)
+        else:  # one factorization at the initial values; the scan on the surrogate it seeds
+            log.info(f"initial values solved in full with their sensitivities, then a scan of {len(points)} "
+                     f"material values on the surrogate (inner: {self.inner_name})")
+            self.profile.solve(self.params.initial, "start")
+            self.check_identifiable()
+            start = surrogate_scan(self.surrogate, points)
+            self.outer_iterations = minimize_on_surrogate(self.profile, self.surrogate, xtol, self.options.outer_maxiter,
+                                                          start)
         self.polish()
 
     def posterior(self, result: InnerResult | None = None) -> Posterior | None:
@@ -229,15 +235,15 @@ class Estimator:
         return posterior_at(self.profile, result or self.profile.best(), noise)
 
     def check_identifiable(self) -> None:
-        """After the scan: a constant whose 95 % interval (at the best scan value) is wider
+        """After the scan: a constant whose 95 % interval (at the best full solve) is wider
         than its bounds is not determined by the data -- end now, not after the whole run."""
         post = self.posterior()
         undetermined = {} if post is None else post.undetermined(self.params.s_bounds())
         if not undetermined:
             return
         why = "; ".join(f"{label}: {reason}" for label, reason in undetermined.items())
-        message = (f"{self.problem.scene.path}: the data do not determine {', '.join(undetermined)} (at the best scan "
-                   f"value, {why}); fix it, or add data that see it (reduced bases, landmarks inside the body, more "
+        message = (f"{self.problem.scene.path}: the data do not determine {', '.join(undetermined)} (at the best "
+                   f"value solved, {why}); fix it, or add data that see it (reduced bases, landmarks inside the body, more "
                    f"matched surfaces), or set optimizer.allow_undetermined = true")
         if not self.options.allow_undetermined:
             raise UserError(message)

@@ -105,6 +105,42 @@ class BoundaryForward:
         self.forward_solves += len(columns)
         return np.stack(columns, axis=1) if columns else np.zeros((len(u.x.petsc_vec.array), 0))
 
+    def response_sensitivities(self, theta, X: np.ndarray, order: int = 2) -> list[np.ndarray]:
+        """Derivatives of the mode fields X(theta) (response_block) along the estimated
+        constants, on the factorization X was solved with (block back-solves only):
+
+            K dX_k  = -D_k X                    (D_k = dK/dtheta_k)
+            K dX_kl = -(D_k dX_l + D_l dX_k)     (order 2, k <= l)
+
+        on the free DOFs, zero on the loaded and fixed ones (the boundary modes do not
+        depend on the materials). The second order leaves out d2K/dtheta2 -- exact along
+        E, whose coefficients are linear in it; for nu it only shapes the space the
+        surrogate searches (surrogate.py), which stays exact at every full solve."""
+        c, dc = self.coefficients(theta)
+        factor = self.model.factorize(c, self.clamped_boundary)
+        D = [self.model.stiffness(row) for row in dc]
+
+        def solve(*products) -> np.ndarray:  # -K^{-1} sum D Y, with the Dirichlet rows zero
+            block = self.model.dense(X.shape[1])
+            rhs = block.getDenseArray()
+            for M, Y in products:
+                rhs -= _times(M, Y, self.model)
+            rhs[self.clamped_boundary] = 0.0
+            out = self.model.dense(X.shape[1])
+            factor.solve_many(block, out)
+            values = out.getDenseArray().copy()
+            block.destroy()
+            out.destroy()
+            return values
+
+        first = [solve((Dk, X)) for Dk in D]
+        second = [solve((D[k], first[j]), (D[j], first[k]))
+                  for k in range(len(D)) for j in range(k, len(D))] if order >= 2 else []
+        for M in D:
+            M.destroy()
+        self.forward_solves += (len(first) + len(second)) * X.shape[1]
+        return first + second
+
     def lift(self, basis: np.ndarray | None = None) -> PETSc.Mat:
         """The boundary modes as fields: W on the loaded DOFs, zero elsewhere (dense, owned rows)."""
         W = np.eye(self.force_dofs) if basis is None else basis
@@ -134,3 +170,14 @@ class BoundaryForward:
         for M in (G, K, rhs, X):
             M.destroy()
         return out
+
+
+def _times(M: PETSc.Mat, Y: np.ndarray, model: ElasticModel) -> np.ndarray:
+    """M Y for owned-row columns Y (numpy)."""
+    D = model.dense(Y.shape[1])
+    D.getDenseArray()[:] = Y
+    P = M.matMult(D)
+    out = P.getDenseArray().copy()
+    P.destroy()
+    D.destroy()
+    return out

@@ -80,8 +80,10 @@ class Profile:
         """J(theta) in full (one factorization); a snapshot for the surrogate."""
         if self.surrogate is None:
             return self.problem.response(theta, self.basis)
-        X = self.problem.forward.response_block(theta, self.basis)
-        self.surrogate.add(theta, X)
+        forward = self.problem.forward
+        X = forward.response_block(theta, self.basis)
+        order = 2 if len(self.params) <= 2 else 1  # second order: 1 + n + n(n+1)/2 fields per mode
+        self.surrogate.add(theta, X, forward.response_sensitivities(theta, X, order))
         return self.problem.observation.rows(X)
 
     def known(self, s) -> InnerResult | None:
@@ -181,9 +183,24 @@ def minimize_profile(profile: Profile, xtol: np.ndarray, maxiter: int) -> int:
     return last["iterations"]
 
 
-def minimize_on_surrogate(profile: Profile, surrogate: SurrogateProfile, xtol: np.ndarray, maxiter: int) -> int:
-    """Optimise s on the surrogate, solve its optimum in full (a new snapshot), repeat
-    until the optimum lands where a full solve already is. Returns the rounds."""
+def surrogate_scan(surrogate: SurrogateProfile, points) -> np.ndarray:
+    """Phi* on the surrogate at each scan point (dense algebra, no factorization); the
+    best of them and of the full solves, in s."""
+    profile, params = surrogate.profile, surrogate.params
+    best_s, best = params.to_s(profile.best_theta()), profile.best().value
+    for theta in points:
+        value = surrogate.value_and_gradient(params.to_s(theta))[0]
+        log.info(f"  scan  {params.describe(theta)}  Phi* ~ {value:.6e}  (surrogate)")
+        if value < best:
+            best_s, best = params.to_s(theta), value
+    return best_s
+
+
+def minimize_on_surrogate(profile: Profile, surrogate: SurrogateProfile, xtol: np.ndarray, maxiter: int,
+                          start=None) -> int:
+    """Optimise s on the surrogate (from ``start``, then from the best full solve), solve
+    its optimum in full (a new snapshot), repeat until the optimum lands where a full
+    solve already is. Returns the rounds."""
     params = profile.params
     log.info(f"outer L-BFGS-B on the reduced-basis response in the materials ({profile.surrogate.size} directions)")
 
@@ -192,7 +209,8 @@ def minimize_on_surrogate(profile: Profile, surrogate: SurrogateProfile, xtol: n
         return value / scale, gradient / scale
 
     for rounds in range(1, maxiter + 1):
-        res = minimize(scaled, params.to_s(profile.best_theta()), args=(max(profile.best().value, 1e-300),),
+        x0 = start if start is not None and rounds == 1 else params.to_s(profile.best_theta())
+        res = minimize(scaled, x0, args=(max(profile.best().value, 1e-300),),
                        jac=True, method="L-BFGS-B", bounds=params.s_bounds(),
                        options={"maxiter": 100, "ftol": 1e-14, "gtol": 1e-10})
         theta = params.to_theta(res.x)

@@ -72,9 +72,11 @@ class MaterialSurrogate:
     def size(self) -> int:
         return self.V.shape[1]
 
-    def add(self, theta, X: np.ndarray) -> int:
-        """Add the mode fields X (owned rows, r) solved at theta; returns the directions kept."""
-        Y = X - self.G
+    def add(self, theta, X: np.ndarray, sensitivities=()) -> int:
+        """Add the mode fields X (owned rows, r) solved at theta, and their derivatives in
+        the materials (forward.response_sensitivities: fields that vanish on the
+        boundary); returns the directions kept."""
+        Y = np.hstack([X - self.G, *sensitivities])
         Y[~self.free] = 0.0
         scale = np.sqrt(max(np.max(np.diag(self._dot(Y, Y))), 1e-300))
         for _ in range(2):  # Gram-Schmidt against V, twice for round-off

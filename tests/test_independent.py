@@ -203,3 +203,52 @@ def test_phantom_files_motion_and_fiducials(truth_dir):
     level = np.sum(((source - prostate["center"]) / prostate["radii"]) ** 2, axis=1)
     assert len(source) == 4 and level.max() < 0.6
     assert (np.linalg.norm(moved - source, axis=1) > 0.01).all()
+
+
+# --------------------------------------------------------------------------- estimates
+# The toolkit's own command line with default settings on targets it did not make
+# (scikit-fem P2 on finer, differently built curved meshes, sampled on the exact
+# geometry). Before the sag-free matching and the estimator fixes these were off by
+# 17-54 % (inclusion) and up to 152 % (stretched top); see the README's tables.
+
+
+def _estimate(problem, out, *settings) -> dict:
+    import json
+
+    from fenics_elasto.cli import main
+
+    args = ["estimate", str(problem), "--out", str(out)]
+    for s in settings:
+        args += ["--set", s]
+    assert main(args) == 0
+    return json.loads((out / "result.json").read_text())
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("nu", [0.1, 0.4])
+def test_letter_a_nu_from_an_independent_target(truth_dir, tmp_path, nu):
+    """Measured -0.65 % (nu = 0.1) and -0.24 % (0.4); the bound leaves room for the
+    platform, not for a regression to the old -2 %."""
+    from fenics_elasto.meshing import build_scene
+
+    problem = build_scene("letter-a", tmp_path / "source")
+    target = ind.letter_a(truth_dir, nu)["target"]
+    result = _estimate(problem, tmp_path / "out", f"target.surface='{target}'")
+    found = result["materials"]["letter"]["nu"]
+    assert abs(found - nu) / nu < 0.012, found
+    assert not result["warnings"], result["warnings"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("ratio, top, bound", [(5.0, ind.INCLUSION_TOP, 0.01), (10.0, (0.25, 0.1, -0.3, -0.02), 0.02)])
+def test_inclusion_ratio_from_independent_targets(truth_dir, tmp_path, ratio, top, bound):
+    """A user's straight-sided scene (h = 0.35) against the exact displaced circle:
+    measured +0.19 % (ratio 5) and -0.93 % (ratio 10, top stretched), where the old
+    default was +29.6 % and +25.9 %. The 95 % interval is reported and, with the
+    residual as noise, must not be so narrow that it excludes a truth this close."""
+    files = ind.inclusion(truth_dir, ratio, top=top)
+    result = _estimate(files["problem"], tmp_path / "out")
+    E = result["materials"]["inclusion"]["E"]
+    assert abs(E / 10.0 - ratio) / ratio < bound, E
+    low, high = result["uncertainty"]["inclusion.E"]["ci95"]
+    assert low < E < high and high - low < 0.2 * E

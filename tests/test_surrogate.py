@@ -95,3 +95,37 @@ def test_estimate_on_the_surrogate_equals_the_full_outer_loop(tmp_path):
     assert fast["factorizations"] < solved["factorizations"]
     assert fast["objective"]["final"] <= 1.01 * solved["objective"]["final"]
     assert fast["iterations"]["surrogate_evaluations"] > 0
+
+
+def test_sensitivities_are_derivatives_of_the_mode_fields(inclusion):
+    """forward.response_sensitivities against central differences of response_block:
+    first order along each constant (exact), second order along E (exact: K is linear
+    in E); and a surrogate seeded at one point with them reaches far in E."""
+    problem, W = inclusion
+    theta = at(problem, 20.0, 0.3)
+    X = problem.forward.response_block(theta, W)
+    sensitivities = problem.forward.response_sensitivities(theta, X, order=2)
+    assert len(sensitivities) == 2 + 3  # first order per constant, second per pair k <= l
+    for k in range(2):
+        h = 1e-4 * theta[k]
+        step = np.eye(2)[k] * h
+        central = (problem.forward.response_block(theta + step, W) - problem.forward.response_block(theta - step, W)) / (2 * h)
+        assert relative_error(sensitivities[k], central) < 1e-6, k
+    e = [key for _, key in problem.params.names].index("E")
+    second_EE = sensitivities[2 + (0 if e == 0 else 2)]  # pairs (0, 0), (0, 1), (1, 1)
+    h = 1e-2 * theta[e]
+    step = np.eye(2)[e] * h
+    curvature = (problem.forward.response_block(theta + step, W) - 2 * X
+                 + problem.forward.response_block(theta - step, W)) / h**2
+    assert relative_error(second_EE, curvature) < 1e-3  # the O(h^2) of the central difference
+    seeded = MaterialSurrogate(problem, W)
+    seeded.add(theta, X, problem.forward.response_sensitivities(theta, X, order=2))
+    plain = MaterialSurrogate(problem, W)
+    plain.add(theta, X)
+    for E in (5.0, 80.0):
+        probe = at(problem, E, 0.3)
+        truth = problem.observation.rows(problem.forward.response_block(probe, W))
+        with_sensitivities = relative_error(seeded.response(probe)[0], truth)
+        print(f"E = {E:g}: one snapshot {relative_error(plain.response(probe)[0], truth):.2e}, "
+              f"with its sensitivities {with_sensitivities:.2e}")
+        assert with_sensitivities < 0.1 * relative_error(plain.response(probe)[0], truth)
