@@ -210,8 +210,19 @@ def minimize_on_surrogate(profile: Profile, surrogate: SurrogateProfile, xtol: n
 
     for rounds in range(1, maxiter + 1):
         x0 = start if start is not None and rounds == 1 else params.to_s(profile.best_theta())
+        last = {"s": np.array(x0, float)}
+
+        def settle(intermediate_result):
+            # Each evaluation is a whole inner fit, whose value is exact only to the inner
+            # tolerance: stop once a step moves every constant by less than xtol / 10
+            # rather than chase digits of Phi* that are not there.
+            settled = np.all(np.abs(intermediate_result.x - last["s"]) < 0.1 * xtol)
+            last["s"] = intermediate_result.x.copy()
+            if settled:
+                raise StopIteration
+
         res = minimize(scaled, x0, args=(max(profile.best().value, 1e-300),),
-                       jac=True, method="L-BFGS-B", bounds=params.s_bounds(),
+                       jac=True, method="L-BFGS-B", bounds=params.s_bounds(), callback=settle,
                        options={"maxiter": 100, "ftol": 1e-14, "gtol": 1e-10})
         theta = params.to_theta(res.x)
         log.info(f"  surrogate optimum {params.describe(theta)}  (equation residual "
