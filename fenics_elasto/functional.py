@@ -164,23 +164,31 @@ def minimize_profile(profile: Profile, xtol: np.ndarray, maxiter: int) -> int:
     factorizations, not accuracy). Returns the iterations."""
     params = profile.params
     scale = max(profile.best().value, 1e-300)  # L-BFGS-B's tolerances are absolute below 1
-    last = {"s": params.to_s(profile.best_theta()), "iterations": 0}
+    settle = Settle(params.to_s(profile.best_theta()), xtol)
 
     def objective(s):
         value, grad = profile.value_and_gradient(s)
         return value / scale, grad / scale
 
-    def settle(intermediate_result):
-        last["iterations"] += 1
-        settled = np.all(np.abs(intermediate_result.x - last["s"]) < xtol)
-        last["s"] = intermediate_result.x.copy()
+    log.info("outer L-BFGS-B over the materials (envelope gradient)")
+    minimize(objective, settle.s, jac=True, method="L-BFGS-B", bounds=params.s_bounds(), callback=settle,
+             options={"maxiter": maxiter, "ftol": 1e-12, "gtol": 1e-9})
+    return settle.iterations
+
+
+class Settle:
+    """An L-BFGS-B callback that ends the run once a step moves every coordinate by less
+    than ``xtol`` (more digits would cost solves, not accuracy); counts the iterations."""
+
+    def __init__(self, s0, xtol):
+        self.s, self.xtol, self.iterations = np.array(s0, float), np.asarray(xtol), 0
+
+    def __call__(self, intermediate_result):
+        self.iterations += 1
+        settled = np.all(np.abs(intermediate_result.x - self.s) < self.xtol)
+        self.s = intermediate_result.x.copy()
         if settled:
             raise StopIteration
-
-    log.info("outer L-BFGS-B over the materials (envelope gradient)")
-    minimize(objective, last["s"], jac=True, method="L-BFGS-B", bounds=params.s_bounds(), callback=settle,
-             options={"maxiter": maxiter, "ftol": 1e-12, "gtol": 1e-9})
-    return last["iterations"]
 
 
 def surrogate_scan(surrogate: SurrogateProfile, points) -> np.ndarray:
@@ -210,19 +218,10 @@ def minimize_on_surrogate(profile: Profile, surrogate: SurrogateProfile, xtol: n
 
     for rounds in range(1, maxiter + 1):
         x0 = start if start is not None and rounds == 1 else params.to_s(profile.best_theta())
-        last = {"s": np.array(x0, float)}
-
-        def settle(intermediate_result):
-            # Each evaluation is a whole inner fit, whose value is exact only to the inner
-            # tolerance: stop once a step moves every constant by less than xtol / 10
-            # rather than chase digits of Phi* that are not there.
-            settled = np.all(np.abs(intermediate_result.x - last["s"]) < 0.1 * xtol)
-            last["s"] = intermediate_result.x.copy()
-            if settled:
-                raise StopIteration
-
+        # Each evaluation is a whole inner fit, exact only to the inner tolerance: stop once
+        # a step moves every constant by less than xtol / 10, not chase digits of Phi*.
         res = minimize(scaled, x0, args=(max(profile.best().value, 1e-300),),
-                       jac=True, method="L-BFGS-B", bounds=params.s_bounds(), callback=settle,
+                       jac=True, method="L-BFGS-B", bounds=params.s_bounds(), callback=Settle(x0, 0.1 * xtol),
                        options={"maxiter": 100, "ftol": 1e-14, "gtol": 1e-10})
         theta = params.to_theta(res.x)
         log.info(f"  surrogate optimum {params.describe(theta)}  (equation residual "

@@ -169,28 +169,8 @@ def read_msh(path: Path, comm=MPI.COMM_WORLD):
     import gmsh
 
     facet_rows = {}  # rank 0: every facet group's facets as node rows
-
-    def open_model():
-        open_msh(path)
-        groups = gmsh.model.getPhysicalGroups()
-        require(groups, f"{path}: the mesh has no physical groups")
-        tdim = max(d for d, _ in groups)
-        require(tdim in (2, 3), f"{path}: expected a 2D or 3D mesh, found dimension {tdim}")
-        _, coords, _ = gmsh.model.mesh.getNodes()
-        coords = coords.reshape(-1, 3)
-        require(np.isfinite(coords).all(), f"{path}: the mesh has NaN or infinite coordinates")
-        require(tdim == 3 or np.allclose(coords[:, 2], 0), f"{path}: a 2D mesh must lie in the z = 0 plane")
-        cell_groups = [t for d, t in groups if d == tdim]
-        require(cell_groups, f"{path}: no cell (region) physical groups")
-        unnamed = [t for t in cell_groups if not gmsh.model.getPhysicalName(tdim, t)]
-        require(not unnamed, f"{path}: cell physical group(s) {unnamed} have no name; the problem file names "
-                             "each region's material (gmsh: Physical Volume(\"name\") = ...)")
-        check_mesh(gmsh, str(path), tdim)
-        facet_rows.update(physical_facets(gmsh, tdim))
-        return tdim, sorted(facet_rows)
-
     try:
-        tdim, names = on_root(comm, open_model)
+        tdim, names = on_root(comm, lambda: _open_checked(path, facet_rows))
         try:  # model_to_mesh shares its own errors across ranks
             data = dolfinx.io.gmsh.model_to_mesh(gmsh.model if comm.rank == 0 else None, comm, 0, gdim=tdim)
         except RuntimeError as err:
@@ -198,10 +178,39 @@ def read_msh(path: Path, comm=MPI.COMM_WORLD):
     finally:
         if comm.rank == 0 and gmsh.isInitialized():
             gmsh.model.remove()
+    facet_groups = _distribute_facet_groups(data.mesh, names, facet_rows, comm)
+    cell_groups = {n: g.tag for n, g in data.physical_groups.items() if g.dim == tdim}
+    return data.mesh, data.cell_tags, cell_groups, facet_groups
 
-    mesh = data.mesh
-    fdim = tdim - 1
-    mesh.topology.create_connectivity(fdim, tdim)
+
+def _open_checked(path: Path, facet_rows: dict) -> tuple[int, list[str]]:
+    """Rank 0: open the .msh in gmsh, check what DOLFINx's reader would choke on, and
+    fill ``facet_rows`` (group name -> facets as node rows); (tdim, facet group names)."""
+    import gmsh
+
+    open_msh(path)
+    groups = gmsh.model.getPhysicalGroups()
+    require(groups, f"{path}: the mesh has no physical groups")
+    tdim = max(d for d, _ in groups)
+    require(tdim in (2, 3), f"{path}: expected a 2D or 3D mesh, found dimension {tdim}")
+    _, coords, _ = gmsh.model.mesh.getNodes()
+    coords = coords.reshape(-1, 3)
+    require(np.isfinite(coords).all(), f"{path}: the mesh has NaN or infinite coordinates")
+    require(tdim == 3 or np.allclose(coords[:, 2], 0), f"{path}: a 2D mesh must lie in the z = 0 plane")
+    cell_groups = [t for d, t in groups if d == tdim]
+    require(cell_groups, f"{path}: no cell (region) physical groups")
+    unnamed = [t for t in cell_groups if not gmsh.model.getPhysicalName(tdim, t)]
+    require(not unnamed, f"{path}: cell physical group(s) {unnamed} have no name; the problem file names "
+                         "each region's material (gmsh: Physical Volume(\"name\") = ...)")
+    check_mesh(gmsh, str(path), tdim)
+    facet_rows.update(physical_facets(gmsh, tdim))
+    return tdim, sorted(facet_rows)
+
+
+def _distribute_facet_groups(mesh, names: list[str], facet_rows: dict, comm) -> dict[str, np.ndarray]:
+    """Each facet group (node rows on rank 0) as local facet indices on every rank."""
+    fdim = mesh.topology.dim - 1
+    mesh.topology.create_connectivity(fdim, fdim + 1)
     facet_groups = {}
     for name in names:
         rows = facet_rows[name] if comm.rank == 0 else None
@@ -213,8 +222,7 @@ def read_msh(path: Path, comm=MPI.COMM_WORLD):
             mesh, fdim, dolfinx.graph.adjacencylist(local), np.zeros(len(local), np.int32)
         ).indices
         facet_groups[name] = np.asarray(facets, dtype=np.int32)
-    cell_groups = {n: g.tag for n, g in data.physical_groups.items() if g.dim == tdim}
-    return mesh, data.cell_tags, cell_groups, facet_groups
+    return facet_groups
 
 
 # --------------------------------------------------------------------------- scene
