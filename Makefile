@@ -8,7 +8,7 @@ STAMP := $(VENV)/.installed
 PYTHON ?= $(shell for p in python3.13 python3.12 python3 $$(ls -d $$HOME/.pyenv/versions/3.1[2-9]*/bin/python3 /usr/bin/python3.1[2-9] 2>/dev/null); do \
   $$p -c 'import sys; sys.exit(sys.version_info < (3, 12))' >/dev/null 2>&1 && echo $$p && break; done)
 
-.PHONY: demo demo-quick demo-accurate demo-prostate demo-prostate-quick test test-fast bench lint clean
+.PHONY: demo demo-quick demo-accurate demo-prostate demo-prostate-quick test test-fast test-demo bench lint clean
 
 $(STAMP): pyproject.toml
 	@test -n "$(PYTHON)" || { echo "error: no python >= 3.12 found on PATH" >&2; exit 2; }
@@ -41,6 +41,10 @@ test: $(STAMP)
 
 test-fast: $(STAMP)
 	$(PY) -m pytest -q -m "not slow"
+
+# The demos' own variants as tests (minutes each; not part of make test).
+test-demo: $(STAMP)
+	$(PY) -m pytest -q -m demo
 
 bench: $(STAMP)
 	$(PY) benchmarks/forward.py

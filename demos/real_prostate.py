@@ -56,6 +56,10 @@ SETTINGS = {
              "synthetic": 120, "rank": 80},
     "quick": {"source": {"margin": 15.0, "size": 16.0}, "truth": {"margin": 18.0, "size": 14.0, "organ_size": 3.5},
               "cases": {3.0: ("noise 0.5 mm", "voxels 1 mm")}, "synthetic": 120, "rank": 80},
+    # the whole chain for CI, in a few minutes: coarse meshes, fewer bases, one target
+    "ci": {"source": {"margin": 15.0, "size": 18.0, "organ_size": 7.0},
+           "truth": {"margin": 18.0, "size": 16.0, "organ_size": 5.0},
+           "cases": {3.0: ("voxels 1 mm",)}, "synthetic": 60, "rank": 40},
 }
 SCAN = 3  # start scan of the estimate: Phi*(E) is single-welled here (5 points gave the same E)
 
@@ -325,10 +329,12 @@ def index_page(out: Path, rows: list[dict], facts: dict, pictures: dict) -> str:
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", type=Path, default=Path("out/prostate"))
-    parser.add_argument("--quick", action="store_true", help="coarser meshes, one case, fewer targets (for CI)")
+    parser.add_argument("--quick", action="store_true", help="coarser meshes, one case, two targets")
+    parser.add_argument("--ci", action="store_true", help="the whole chain on coarse meshes, one target (for CI)")
     parser.add_argument("--docs", type=Path, default=None, help="also copy index.md and small pictures here")
     args = parser.parse_args()
-    settings = SETTINGS["quick" if args.quick else "full"]
+    variant = "ci" if args.ci else "quick" if args.quick else "full"
+    settings = SETTINGS[variant]
     out = args.out
     start = time.perf_counter(), time.process_time()
 
@@ -369,7 +375,8 @@ def main():
                                                                    out / f"estimate_{kind.replace(' ', '_')}.png")
     pictures["bases: explained variance"] = out / "bases.png"
     facts.update(synthetic=settings["synthetic"], rank=settings["rank"], train_wall_s=train["wall_s"],
-                 train_cpu_s=train["cpu_s"], command="make demo-prostate" + ("-quick" if args.quick else ""),
+                 train_cpu_s=train["cpu_s"], command={"full": "make demo-prostate", "quick": "make demo-prostate-quick",
+                                                      "ci": "python demos/real_prostate.py --ci"}[variant],
                  source_note=", " + describe(settings["source"]), truth_note=describe(settings["truth"]),
                  total_wall_s=time.perf_counter() - start[0], total_cpu_s=time.process_time() - start[1])
     names = {caption: Path(p).name for caption, p in pictures.items()}

@@ -39,17 +39,40 @@ def test_prostate_demo_quick(tmp_path):
     assert row and float(row.group(2)) < 15.0, index  # reduced rank 6 on a coarse phantom; see README
 
 
-QUICK_BOUND = 10.0  # % on the E ratio (see the README's real-prostate table)
+@pytest.mark.slow
+def test_real_prostate_chain(tmp_path):
+    """The real prostate from STL files to an estimate through the command line (`--ci`:
+    coarse meshes, rank 40 of 60 synthetic examples, one voxelised target; ~2 min).
+    The chain is what is checked here: every command succeeds, the bases explain the
+    wall motion, the result carries its interval, the pictures are drawn, and the
+    prostate comes out stiffer than the tissue and within a factor 2 of the truth. It
+    is not an accuracy test: on these coarse meshes E is off by +52 % (rank 40) or
+    +13 % (rank 80), with an interval that states noise only; the README's table of the
+    quick and full runs (+5 % and better) is the accuracy claim."""
+    import json
+
+    run_demo("real_prostate.py", "--ci", "--out", tmp_path, timeout=1200)
+    rows = json.loads((tmp_path / "table.json").read_text())
+    assert [r["target"] for r in rows] == ["voxels 1 mm"]
+    row = rows[0]
+    assert 1.5 < row["ratio"] < 6.0, row  # truth 3
+    assert row["bases_fit"] > 0.95 and row["sigma"] > 0, row
+    index = (tmp_path / "index.md").read_text()
+    for picture in ("truth.png", "targets.png", "estimate_voxels_1_mm.png", "bases.png"):
+        assert picture in index
+        assert_picture(tmp_path / picture)
+
+
+QUICK_BOUND = 7.0  # % on the E ratio: the quick run measured +4.9 % (noise) and +5.9 % (voxels)
 
 
 @pytest.mark.slow
+@pytest.mark.demo
 def test_real_prostate_demo_quick(tmp_path):
     """Surface files -> scene -> simulate -> image-like targets -> train -> estimate, on
-    the real prostate, through the command line. The bound is loose on purpose (see
-    the demo's README section): the quick run's coarse source mesh and rank-40 bases
-    leave a misfit floor that moves E by up to ~BOUND %, and the point is that every
-    kind of target -- clean, noisy, voxelised -- lands near the truth, not far off
-    (a wrong set-up, or targets in the wrong place, miss by far more)."""
+    the real prostate, through the command line (`make test-demo`, ~13 min). The quick
+    run's coarse source mesh (16 mm, 5.3 mm at the organs) leaves a bias of ~5 %
+    (measured +4.9 % noisy, +5.9 % voxelised); the bound keeps that and no more."""
     import json
 
     run_demo("real_prostate.py", "--quick", "--out", tmp_path, timeout=2400)
