@@ -65,7 +65,7 @@ def noisy_copy(surfaces: dict[str, Path], folder: Path, std: float, rng) -> dict
     return {"target": {"surfaces": out}}
 
 
-def one_case(tmp: Path, name: str, levels, draws: int) -> list[str]:
+def one_case(tmp: Path, name: str, levels, draws: int, known_noise: bool = False) -> list[str]:
     *_, label, truth, size = CASES[name]
     source, surfaces = target_folder(tmp, name)
     rows = []
@@ -76,6 +76,8 @@ def one_case(tmp: Path, name: str, levels, draws: int) -> list[str]:
         for draw in range(draws if level > 0 else 1):
             settings = noisy_copy(surfaces, tmp / name / f"noisy_{level}_{draw}", level * size, rng) if level > 0 \
                 else {"target": {"surfaces": {g: str(p) for g, p in surfaces.items()}}}
+            if known_noise and level > 0:  # the user states the noise: [target] noise
+                settings["target"]["noise"] = level * size
             problem = InverseProblem(load_scene(source, settings))
             options = Options.from_scene(problem.scene)
             options.allow_undetermined = True  # measured anyway; counted below
@@ -122,6 +124,7 @@ def main():
     parser.add_argument("--draws", type=int, default=30)
     parser.add_argument("--cases", default="letter,inclusion")
     parser.add_argument("--noise", default="0,0.005,0.02", help="noise std as fractions of the body size")
+    parser.add_argument("--known-noise", action="store_true", help="give the estimate the true noise ([target] noise)")
     args = parser.parse_args()
     levels = [float(v) for v in args.noise.split(",")]
     print("| case | noise (of body size) | draws | coverage of the 95 % interval | mean sigma | spread of estimates "
@@ -130,7 +133,7 @@ def main():
     print("|" + "---|" * 16)
     with tempfile.TemporaryDirectory() as tmp:
         for name in args.cases.split(","):
-            one_case(Path(tmp), name, levels, args.draws)
+            one_case(Path(tmp), name, levels, args.draws, args.known_noise)
 
 
 if __name__ == "__main__":
