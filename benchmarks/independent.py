@@ -92,7 +92,7 @@ def inclusion_rows(out: Path, ratios, settings, top=ind.INCLUSION_TOP):
         yield row(f"inclusion, E ratio {ratio:g}{label}", ratio, outcome, "inclusion", "E")
 
 
-def phantom_rows(out: Path, values, settings, synthetic=(60, 40)):
+def phantom_rows(out: Path, values, settings, synthetic=(120, 80)):
     """The phantom from organ surfaces, then surfaces + 4 fiducials, with bases trained
     without scans (`train --synthetic N --rank R` on the source)."""
     problem = source("prostate-phantom", out / "source-phantom", "--size", "1.6")
