@@ -13,7 +13,6 @@ the estimate is as good as the meshes. Two tables:
 """
 
 import argparse
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -24,8 +23,7 @@ from fenics_elasto.objective import InverseProblem
 from fenics_elasto.reduction import train_bases
 from fenics_elasto.scene import load_scene
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "demos"))
-from prostate_elastography import SIZE, recovered, run_case  # noqa: E402
+from fenics_elasto.study import SIZE, recovered, run_case  # noqa: E402
 
 from fenics_elasto.study import simulate_examples, simulate_targets  # noqa: E402
 

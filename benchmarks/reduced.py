@@ -16,7 +16,6 @@ The same study at the demo's scale is `make demo` (demos/prostate_elastography.p
 """
 
 import argparse
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -33,9 +32,8 @@ from fenics_elasto.simulate import simulate
 from fenics_elasto.surrogate import MaterialSurrogate
 from forward import best_of  # benchmarks/ is the script's folder
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "demos"))
-from prostate_elastography import (FINE, TRUE_E, rank_sweep, rank_table, recovered, run_case,  # noqa: E402
-                                   speedup_table)
+from fenics_elasto.study import (FINE, TRUE_E, rank_sweep, rank_table, recovered, run_case,  # noqa: E402
+                                 speedup_table)
 
 from fenics_elasto.study import simulate_examples, simulate_targets  # noqa: E402
 from fenics_elasto.reduction import train_bases  # noqa: E402

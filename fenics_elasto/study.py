@@ -9,14 +9,17 @@ source's matched nodes as landmarks. Motions and targets are typed objects whose
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from fenics_elasto.elasticity import ElasticModel
+from fenics_elasto.estimate import estimate
 from fenics_elasto.io import write_matched_surfaces
 from fenics_elasto.meshing import build_scene, phantom_organs
+from fenics_elasto.objective import InverseProblem
 from fenics_elasto.scene import load_scene, reconfigure
 from fenics_elasto.simulate import simulate, write_landmarks_for
 
@@ -118,3 +121,66 @@ def simulate_targets(out: Path, Es, size: float, patient: int = 0, source: Path 
         landmarks = write_landmarks_for(matched, u, folder / "landmarks.csv") if matched is not None else None
         targets[E] = TargetFiles({g: folder / f"surface_{g}.vtp" for g in ORGANS}, landmarks)
     return targets
+
+
+# --------------------------------------------------------------------------- the phantom study's cases and tables
+
+TRUE_E = (25.0, 50.0, 75.0)
+SIZE, FINE = 1.6, 1.3  # element sizes (cm, --size) of the source patients and of the target meshes
+
+
+def run_case(source: Path, target: dict, basis=None, options=None) -> dict:
+    """One estimate (``target``: settings, e.g. ``TargetFiles.settings()``); result.json fields + seconds."""
+    problem = InverseProblem(load_scene(source, target))
+    start = time.perf_counter()
+    result = estimate(problem, options=options, basis=basis).record
+    result["seconds"] = time.perf_counter() - start
+    return result
+
+
+def recovered(result: dict) -> float:
+    return result["materials"]["prostate"]["E"]
+
+
+def iterations(result: dict) -> str:
+    return f"{result['iterations']['outer']}/{result['iterations']['inner']}"
+
+
+def table1(cases: dict, rank: int) -> list[str]:
+    """The paper's Table 1: true E -> reduced estimate from the organ surfaces."""
+    lines = [f"Table 1: prostate E from organ surfaces, reduced bases (rank {rank}); tissue E = 10 kPa", "",
+             "| true E | recovered E | error % | seconds | outer/inner iterations |", "|---|---|---|---|---|"]
+    for E, r in cases.items():
+        lines.append(f"| {E:g} | {recovered(r):.2f} | {100 * abs(recovered(r) - E) / E:.1f} | {r['seconds']:.1f} | "
+                     f"{iterations(r)} |")
+    return lines
+
+
+def speedup_table(rows, force_dofs: int, rank: int) -> list[str]:
+    """Reduced against full force space on the same landmark targets: (E, full, reduced) rows."""
+    lines = [f"Speed-up at equal data (landmark targets): full force space ({force_dofs} DOFs) against "
+             f"reduced (rank {rank})", "",
+             "| true E | full E | error % | seconds | outer/inner | reduced E | error % | seconds | outer/inner "
+             "| speed-up |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for E, full, reduced in rows:
+        lines.append(" | ".join([f"| {E:g}"] + [f"{recovered(r):.2f} | {100 * abs(recovered(r) - E) / E:.1f} | "
+                                               f"{r['seconds']:.1f} | {iterations(r)}" for r in (full, reduced)]
+                                + [f"{full['seconds'] / reduced['seconds']:.1f}x |"]))
+    return lines
+
+
+def rank_sweep(source: Path, target: str, W: np.ndarray, ranks, E: float, known=None):
+    """(rank, E error, inner iterations, seconds) of the reduced estimate at each rank
+    (``known``: rank -> result already computed on this target)."""
+    sweep = []
+    for rank in ranks:
+        r = (known or {}).get(rank) or run_case(source, target, W[:, :rank])
+        sweep.append((rank, abs(recovered(r) - E) / E, r["iterations"]["inner"], r["seconds"]))
+        print(f"   rank {rank:2d}: E error {100 * sweep[-1][1]:.1f} %, {sweep[-1][2]} inner iterations, "
+              f"{sweep[-1][3]:.1f} s", flush=True)
+    return sweep
+
+
+def rank_table(sweep) -> list[str]:
+    return (["| rank | E error % | inner iterations | seconds |", "|---|---|---|---|"]
+            + [f"| {k} | {100 * e:.1f} | {it} | {sec:.1f} |" for k, e, it, sec in sweep])
