@@ -17,6 +17,15 @@ def fine_simulation(name: str, folder: Path, size: float, settings=()):
     return scene, sim
 
 
+def inclusion_ratio_4_target(folder: Path, *extra: str) -> str:
+    """The inclusion at E ratio 4 (top moved by (0.3, -0.6), plus ``extra`` settings)
+    simulated at h = 0.25; the --set value that makes its outline and interface the target."""
+    fine_simulation("inclusion", folder, 0.25,
+                    ["materials.inclusion.E=40.0", "boundary.displacement.top.value=[0.3, -0.6]", *extra])
+    targets = ", ".join(f"{g}='{folder / 'target' / f'surface_{g}.vtp'}'" for g in ("outline", "interface"))
+    return f"target.surfaces={{{targets}}}"
+
+
 def letter_case(base: Path, fine_size: float, nu: float):
     """A letter-A source (h = 0.4) and its outline target simulated at nu on a finer mesh."""
     fine_simulation("letter-a", base / "fine", fine_size, [f"materials.letter.nu={nu}"])

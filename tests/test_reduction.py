@@ -13,7 +13,7 @@ from fenics_elasto.meshing import build_scene
 from fenics_elasto.objective import InverseProblem
 from fenics_elasto.reduction import load_bases, pca, train_bases
 from fenics_elasto.scene import load_scene
-from targets import fine_simulation, letter_case
+from targets import fine_simulation, inclusion_ratio_4_target, letter_case
 from test_gradients import taylor_rates
 
 
@@ -91,10 +91,8 @@ def test_train_then_reduced_estimate_from_the_command_line(tmp_path):
     proc = run_cli("train", source, "--examples", *examples, "--rank", 4, "--out", tmp_path / "bases.npz")
     assert proc.returncode == 0, proc.stderr
     assert (tmp_path / "bases.png").exists()
-    fine_simulation("inclusion", tmp_path / "fine", 0.25, ["materials.inclusion.E=40.0",
-                                                            "boundary.displacement.top.value=[0.3, -0.6]"])
-    targets = ", ".join(f"{g}='{tmp_path / 'fine' / 'target' / f'surface_{g}.vtp'}'" for g in ("outline", "interface"))
-    proc = run_cli("estimate", source, "--out", tmp_path / "result", "--set", f"target.surfaces={{{targets}}}",
+    target = inclusion_ratio_4_target(tmp_path / "fine")
+    proc = run_cli("estimate", source, "--out", tmp_path / "result", "--set", target,
                    "--set", f"reduction={{bases='{tmp_path / 'bases.npz'}', rank=4}}")
     assert proc.returncode == 0, proc.stderr[-2000:]
     result = json.loads((tmp_path / "result" / "result.json").read_text())
@@ -102,7 +100,7 @@ def test_train_then_reduced_estimate_from_the_command_line(tmp_path):
     ratio = result["materials"]["inclusion"]["E"] / result["materials"]["matrix"]["E"]
     assert abs(ratio - 4.0) / 4.0 < 0.03, ratio
     # The same bases (trained serially) under 2 MPI ranks: canonical node order.
-    proc = run_cli("estimate", source, "--out", tmp_path / "result2", "--set", f"target.surfaces={{{targets}}}",
+    proc = run_cli("estimate", source, "--out", tmp_path / "result2", "--set", target,
                    "--set", f"reduction={{bases='{tmp_path / 'bases.npz'}', rank=4}}", mpi=2)
     assert proc.returncode == 0, proc.stderr[-2000:]
     parallel = json.loads((tmp_path / "result2" / "result.json").read_text())

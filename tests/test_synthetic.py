@@ -14,7 +14,7 @@ from fenics_elasto.objective import InverseProblem
 from fenics_elasto.reduction import Bases, train_bases
 from fenics_elasto.scene import load_scene
 from fenics_elasto.synthetic import Generator, affine_basis, pressure_examples
-from targets import fine_simulation
+from targets import inclusion_ratio_4_target
 
 
 def test_smooth_fields_have_unit_variance_and_the_kernel_correlation():
@@ -70,11 +70,8 @@ def test_train_synthetic_then_estimate_from_the_command_line(tmp_path):
     assert (tmp_path / "bases.npz").is_file() and (tmp_path / "bases.png").is_file()  # a missing suffix is added
     assert "left out of the training" in proc.stdout
     assert Bases.read(tmp_path / "bases.npz").W.shape[1] == 16
-    fine_simulation("inclusion", tmp_path / "fine", 0.25, [
-        "materials.inclusion.E=40.0", "boundary.displacement.top.value=[0.3, -0.6]",
-        "boundary.displacement.top.ripple={amplitude=0.05, length=3.0, seed=2}"])
-    targets = ", ".join(f"{g}='{tmp_path / 'fine' / 'target' / f'surface_{g}.vtp'}'" for g in ("outline", "interface"))
-    proc = run_cli("estimate", source, "--out", tmp_path / "result", "--set", f"target.surfaces={{{targets}}}",
+    target = inclusion_ratio_4_target(tmp_path / "fine", "boundary.displacement.top.ripple={amplitude=0.05, length=3.0, seed=2}")
+    proc = run_cli("estimate", source, "--out", tmp_path / "result", "--set", target,
                    "--set", f"reduction={{bases='{tmp_path / 'bases.npz'}'}}")
     assert proc.returncode == 0, proc.stderr[-2000:]
     result = json.loads((tmp_path / "result" / "result.json").read_text())
