@@ -322,6 +322,16 @@ class ElasticModel:
         M.assemble()
         return M
 
+    def multiply(self, M: PETSc.Mat, Y: np.ndarray) -> np.ndarray:
+        """M Y for owned-row columns Y (numpy), as numpy."""
+        D = self.dense(Y.shape[1])
+        D.getDenseArray()[:] = Y
+        P = M.matMult(D)
+        out = P.getDenseArray().copy()
+        P.destroy()
+        D.destroy()
+        return out
+
     def boundary_load(self, tractions: dict, pressures: dict | None = None) -> PETSc.Vec:
         """Load vector of uniform tractions {group: vector} and pressures {group: p} on
         exterior facet groups; a pressure p pushes the wall into the body, t = -p n."""

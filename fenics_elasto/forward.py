@@ -124,7 +124,7 @@ class BoundaryForward:
             block = self.model.dense(X.shape[1])
             rhs = block.getDenseArray()
             for M, Y in products:
-                rhs -= _times(M, Y, self.model)
+                rhs -= self.model.multiply(M, Y)
             rhs[self.clamped_boundary] = 0.0
             out = self.model.dense(X.shape[1])
             factor.solve_many(block, out)
@@ -170,14 +170,3 @@ class BoundaryForward:
         for M in (G, K, rhs, X):
             M.destroy()
         return out
-
-
-def _times(M: PETSc.Mat, Y: np.ndarray, model: ElasticModel) -> np.ndarray:
-    """M Y for owned-row columns Y (numpy)."""
-    D = model.dense(Y.shape[1])
-    D.getDenseArray()[:] = Y
-    P = M.matMult(D)
-    out = P.getDenseArray().copy()
-    P.destroy()
-    D.destroy()
-    return out

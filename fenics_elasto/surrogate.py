@@ -34,7 +34,7 @@ class MaterialSurrogate:
         self.terms = problem.model.terms
         lift = self.forward.lift(basis)
         self.G = lift.getDenseArray().copy()
-        self.MG = [self._apply(M, lift) for M in self.terms]
+        self.MG = [problem.model.multiply(M, self.G) for M in self.terms]
         lift.destroy()
         self.free = np.ones(len(self.G), bool)
         self.free[self.forward.clamped_boundary] = False
@@ -51,20 +51,6 @@ class MaterialSurrogate:
 
     def _dot(self, X, Y) -> np.ndarray:
         return self.comm.allreduce(X.T @ Y, op=MPI.SUM)
-
-    def _apply(self, M, X) -> np.ndarray:
-        """M X for a PETSc matrix M and owned-row columns X (numpy or a dense PETSc Mat)."""
-        if isinstance(X, np.ndarray):
-            D = self.problem.model.dense(X.shape[1])
-            D.getDenseArray()[:] = X
-        else:
-            D = X
-        P = M.matMult(D)
-        out = P.getDenseArray().copy()
-        P.destroy()
-        if D is not X:
-            D.destroy()
-        return out
 
     # --- building the space
 
@@ -84,7 +70,7 @@ class MaterialSurrogate:
         s2, U = np.linalg.eigh(self._dot(Y, Y))
         keep = s2 > (1e-10 * scale) ** 2
         Q = Y @ (U[:, keep] / np.sqrt(s2[keep]))
-        MQ = [self._apply(M, Q) for M in self.terms]
+        MQ = [self.problem.model.multiply(M, Q) for M in self.terms]
         for j in range(len(self.terms)):
             cross = self._dot(self.V, MQ[j])
             self.VMV[j] = np.block([[self.VMV[j], cross], [cross.T, self._dot(Q, MQ[j])]])
