@@ -8,7 +8,7 @@ STAMP := $(VENV)/.installed
 PYTHON ?= $(shell for p in python3.13 python3.12 python3 $$(ls -d $$HOME/.pyenv/versions/3.1[2-9]*/bin/python3 /usr/bin/python3.1[2-9] 2>/dev/null); do \
   $$p -c 'import sys; sys.exit(sys.version_info < (3, 12))' >/dev/null 2>&1 && echo $$p && break; done)
 
-.PHONY: demo demo-quick demo-accurate demo-prostate demo-prostate-quick test test-fast test-demo bench lint clean
+.PHONY: bench-adjoint demo demo-quick demo-accurate demo-prostate demo-prostate-quick test test-fast test-demo bench lint clean
 
 $(STAMP): pyproject.toml
 	@test -n "$(PYTHON)" || { echo "error: no python >= 3.12 found on PATH" >&2; exit 2; }
@@ -52,9 +52,22 @@ bench: $(STAMP)
 	$(PY) benchmarks/reduced.py
 	$(PY) benchmarks/convergence.py
 
+# dolfinx-adjoint's taped gradient beside ours (benchmarks/gradient_taped.py), in a venv of
+# its own that sees .venv's packages: --no-deps because it pins fenics-dolfinx, which
+# dolfinx-solver-real provides under another name; the MPI library links let mpi4py load.
+BENCH := .venv-bench
+bench-adjoint: $(STAMP)
+	test -x $(BENCH)/bin/python || $(PY) -m venv $(BENCH)
+	$(PY) -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])' > \
+	  $$($(BENCH)/bin/python -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')/project-venv.pth
+	for f in $(VENV)/lib/libmpi* $(VENV)/lib/mpich; do ln -sfn $(abspath $$f) $(BENCH)/lib/; done
+	$(BENCH)/bin/python -m pip install -q --no-deps dolfinx-adjoint==0.4.0 fenicsx-compat==0.4.0
+	$(BENCH)/bin/python -m pip install -q pyadjoint-ad h5py
+	$(BENCH)/bin/python benchmarks/gradient_taped.py
+
 # ruff: pyflakes, pycodestyle, pyupgrade and bugbear checks (configured in pyproject.toml).
 lint: $(STAMP)
 	$(PY) -m ruff check fenics_elasto tests benchmarks demos
 
 clean:
-	rm -rf $(VENV) out .pytest_cache
+	rm -rf $(VENV) $(BENCH) out .pytest_cache
