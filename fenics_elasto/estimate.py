@@ -33,7 +33,7 @@ from fenics_elasto.matching import match_surface
 from fenics_elasto.misfit import SurfaceTerm
 from fenics_elasto.objective import Evaluation, InverseProblem
 from fenics_elasto.posterior import Posterior, posterior_at
-from fenics_elasto.reduction import bases_fit
+from fenics_elasto.reduction import bases_fit, missing_wall_motion
 from fenics_elasto.surrogate import MaterialSurrogate
 
 
@@ -299,11 +299,14 @@ def estimate(problem: InverseProblem, options: Options | None = None, basis: np.
         interrupted = True
         log.info("interrupted: writing the best result so far")
     theta, best, forces = estimator.final()
-    warnings += estimator.warnings + _warnings(estimator, theta, interrupted) + extent_warnings + _target_warnings(problem, best)
+    post = estimator.posterior(best)
+    fit = fit_of_bases(estimator, theta, best)
+    warnings += (estimator.warnings + _warnings(estimator, theta, interrupted, fit, post) + extent_warnings
+                 + _target_warnings(problem, best))
     for text in warnings:
         log.warning(text)
     record = _record(estimator, theta, best, phi_undeformed, warnings, interrupted, start)
-    post = estimator.posterior(best)
+    record["bases_fit"] = fit
     record["uncertainty"] = post.record() if post is not None else {
         "note": f"not computed: the {estimator.inner_name} inner solver gives no response of the controls "
                 "(use reduced bases, or inner = \"gauss-newton\")"}
@@ -320,7 +323,23 @@ def describe_uncertainty(post: Posterior, theta) -> list[str]:
             for label, value, sd, (lo, hi) in zip(post.labels, theta, post.std(), post.interval())]
 
 
-def _warnings(estimator: Estimator, theta, interrupted: bool) -> list[str]:
+def fit_of_bases(estimator: Estimator, theta, best: InnerResult) -> dict | None:
+    """result.json's ``bases_fit``: the share of the surface-matched wall motion the bases
+    span, and how far the estimate moves when they may also use what they miss
+    (reduction.missing_wall_motion; relative for E, absolute for nu)."""
+    fit = bases_fit(estimator.basis, estimator.d0)
+    lin = estimator.profile.linearisation(best)
+    if fit is None or lin is None:
+        return fit
+    missing = missing_wall_motion(estimator.problem, estimator.basis, theta, best.evaluation, lin)
+    params = estimator.params
+    shift = np.where(params.is_E, np.expm1(missing["shift_s"]), missing["shift_s"])
+    return {**fit, "missing_wall_rms": missing["missing_wall_rms"],
+            "shift_if_enriched": {label: float(v) for label, v in zip(params.labels, shift)},
+            "shift_if_enriched_s": [float(v) for v in missing["shift_s"]]}
+
+
+def _warnings(estimator: Estimator, theta, interrupted: bool, fit=None, post=None) -> list[str]:
     out = []
     profile = estimator.profile
     if profile.unconverged:
@@ -329,10 +348,30 @@ def _warnings(estimator: Estimator, theta, interrupted: bool) -> list[str]:
     for label, value, (lo, hi) in zip(estimator.params.labels, theta, estimator.params.bounds):
         if np.isclose(value, lo, rtol=1e-3) or np.isclose(value, hi, rtol=1e-3):
             out.append(f"{label} = {value:.4g} is at its bound [{lo:g}, {hi:g}]: widen the bounds or check the set-up")
-    fit = bases_fit(estimator.basis, estimator.d0)
     if fit is not None and fit["wall_motion_explained"] < 0.9:
         out.append(f"the bases explain {100 * fit['wall_motion_explained']:.0f} % of the wall motion surface "
                    "matching finds; train with more or other examples (e.g. --synthetic)")
+    out += _bias_warnings(estimator.params, fit, post)
+    return out
+
+
+BIAS_MIN = (0.02, 0.01)  # a shift of log E (about 2 %) or of nu worth a warning, if also above 1 sigma
+
+
+def _bias_warnings(params, fit, post) -> list[str]:
+    """Bases that miss wall motion which would move a constant by more than its std
+    (and more than BIAS_MIN): a bias the interval does not show."""
+    if not fit or "shift_if_enriched_s" not in fit:
+        return []
+    std = post.std_s if post is not None else np.zeros(len(params))
+    out = []
+    for label, is_E, shift, shift_s, sd in zip(params.labels, params.is_E, fit["shift_if_enriched"].values(),
+                                                fit["shift_if_enriched_s"], std):
+        if abs(shift_s) > max(BIAS_MIN[0] if is_E else BIAS_MIN[1], sd):
+            moved = f"{100 * shift:+.1f} %" if is_E else f"{shift:+.3f}"
+            out.append(f"the bases miss wall motion (rms {fit['missing_wall_rms']:.3g}) that would move {label} by "
+                       f"about {moved} (first order), more than its interval says: train with more or other examples "
+                       "(--synthetic N with a higher rank)")
     return out
 
 
@@ -405,7 +444,6 @@ def _record(estimator: Estimator, theta, best: InnerResult, phi_undeformed, warn
         "dofs": problem.model.num_dofs,
         "force_dofs": problem.force_dofs,
         "rank": None if estimator.basis is None else int(estimator.basis.shape[1]),
-        "bases_fit": bases_fit(estimator.basis, estimator.d0),
         "inner_solver": estimator.inner_name,
         "match_nodes": "vertices" if problem.observation.vertices_only else "all",
         "degree": problem.scene.degree,

@@ -67,6 +67,10 @@ class InverseProblem:
         """Index into scene.matched of each matched node's (first) group, canonical order."""
         return self._groups_of(self.observation.nodes, self.scene.matched, self.observation.vertices_only)
 
+    def matched_on_loaded(self) -> np.ndarray:
+        """Mask over the matched nodes (canonical order): those on a loaded group."""
+        return self._groups_of(self.observation.nodes, self.scene.loaded, self.observation.vertices_only) >= 0
+
     def loaded_groups(self) -> np.ndarray:
         """Index into scene.loaded of each loaded node's (first) group, canonical order."""
         return self._groups_of(self.loaded, self.scene.loaded)
