@@ -232,7 +232,8 @@ class Estimator:
 
     def posterior(self, result: InnerResult | None = None) -> Posterior | None:
         noise = (self.problem.scene.config["target"] or {}).get("noise")
-        return posterior_at(self.profile, result or self.profile.best(), noise)
+        floor = self.problem.misfit.roughness() if noise is None else 0.0
+        return posterior_at(self.profile, result or self.profile.best(), noise, floor)
 
     def check_identifiable(self) -> None:
         """After the scan: a constant whose 95 % interval (at the best full solve) is wider

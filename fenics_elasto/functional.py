@@ -17,8 +17,9 @@ tight tolerance, and the prior it adds is in the value as in the gradient. By th
 envelope theorem dPhi*/dtheta is the partial derivative at the inner optimum.
 
 ``linearise`` gives what the Gauss-Newton Hessian of Phi* needs (posterior.py): the
-residual's Jacobians in the controls and in s, weighted by the exact closest-feature
-curvature, at an inner optimum.
+residual's Jacobians in the controls and in s at an inner optimum, weighted by the
+noise model's rows (misfit.statistical_rows: a surface point is measured along its
+normal only).
 """
 
 from __future__ import annotations
@@ -50,7 +51,7 @@ class Linearisation:
 def linearise(problem, theta, result: InnerResult, J: np.ndarray, dy_dtheta: np.ndarray, alpha: float) -> Linearisation:
     """The Linearisation at theta from the controls' response J (n, gdim, p) and the
     observed positions' derivative in theta at fixed controls (n, gdim, n_theta)."""
-    rows = problem.misfit.gauss_newton_rows(result.evaluation.y)  # (n, gdim, gdim): sqrt(w) C
+    rows = problem.misfit.statistical_rows(result.evaluation.y, result.evaluation.residual)  # sqrt(w) C
     weighted = np.einsum("lkd,ld->lk", rows, result.evaluation.residual).ravel()
     A_q = np.einsum("lkd,ldr->lkr", rows, J).reshape(len(weighted), -1)
     A_theta = np.einsum("lkd,ldr->lkr", rows, dy_dtheta).reshape(len(weighted), -1)

@@ -39,6 +39,12 @@ class SurfaceTerm:
             out[rows] = surface.closest(y[rows])
         return out
 
+    def roughness(self) -> float:
+        """The targets' own noise (Surface.roughness), rms over the rows matched to each."""
+        counts = np.bincount(self.surface_of, minlength=len(self.surfaces))
+        variance = sum(c * s.roughness() ** 2 for c, s in zip(counts, self.surfaces) if c)
+        return float(np.sqrt(variance / max(counts.sum(), 1)))
+
     def curvature_directions(self, y: np.ndarray) -> np.ndarray:
         out = np.zeros(y.shape + (y.shape[1],))
         for i, surface in enumerate(self.surfaces):
@@ -107,6 +113,30 @@ class Misfit:
         for rows, term in zip(self.slices, self.terms):
             out[rows] = term.curvature_directions(y[rows])
         return np.sqrt(self.weights)[:, None, None] * out
+
+    def roughness(self) -> float:
+        """The surface targets' own noise (0 without surfaces): the posterior's noise floor."""
+        if not hasattr(self, "_roughness"):
+            self._roughness = max([t.roughness() for t in self.terms if isinstance(t, SurfaceTerm)], default=0.0)
+        return self._roughness
+
+    def statistical_rows(self, y: np.ndarray, residual: np.ndarray) -> np.ndarray:
+        """(n, gdim, gdim) sqrt(w) C_l of the noise model the posterior uses: a surface point
+        is measured along the surface's normal only (one component: the unit residual, the
+        normal of a face; the curvature's first row where the residual vanishes); a
+        landmark in every direction. Unlike the exact closest-feature curvature
+        (gauss_newton_rows), a point whose closest feature is a vertex or an edge -- common
+        on a rough, noisy target -- does not claim to know where it sits along the surface."""
+        out = self.gauss_newton_rows(y)
+        rows = self.surface_rows()
+        if len(rows):
+            d = np.linalg.norm(residual[rows], axis=1)
+            moved = d > 1e-12 * max(float(d.max()), 1e-300)
+            normal = out[rows, 0] / np.maximum(np.linalg.norm(out[rows, 0], axis=1, keepdims=True), 1e-300)
+            normal[moved] = residual[rows][moved] / d[moved, None]
+            out[rows] = 0.0
+            out[rows, 0] = np.sqrt(self.weights[rows])[:, None] * normal
+        return out
 
     def landmark_rows(self) -> np.ndarray:
         """Indices of the rows with a fixed target point (landmarks)."""

@@ -14,7 +14,10 @@ covariance of s is the inverse of the Schur complement
 the Hessian of the profile Phi*(s) / s^2. The noise s comes from the residual,
 s^2 = |e|^2 / (m - p_eff), m the informative residual components and p_eff the trace
 of the hat matrix (the effective number of fitted parameters), unless ``[target] noise``
-gives it. In log E the interval is symmetric; reported in E it is not.
+gives it -- or unless the target surfaces themselves are rougher: the closest point to
+a rough surface is its nearest spike, so the residual sees 0.4-0.7x a measured
+surface's noise, while a local quadratic fit of the surface's own vertices sees it
+(Surface.roughness); s is the larger of the two. In log E the interval is symmetric; reported in E it is not.
 
 What this interval states is noise only: a model bias -- a mesh too coarse, bases that
 cannot represent the wall motion -- is not in it (see the README). Identifiability: a
@@ -41,10 +44,11 @@ class Posterior:
     s: np.ndarray  # the optimum in s = (log E, nu)
     covariance: np.ndarray  # of s
     noise_std: float
-    noise_given: bool
+    noise_source: str  # "given" | "the residual" | "the target's roughness"
     dof: float  # m - p_eff
     is_E: np.ndarray
     separable: np.ndarray  # per constant: the share of its effect the controls cannot mimic (0: none)
+    residual_std: float = 0.0  # the noise the residual alone shows
 
     @property
     def std_s(self) -> np.ndarray:
@@ -70,7 +74,9 @@ class Posterior:
                for label, sd, (lo, hi) in zip(self.labels, self.std(), self.interval())}
         out["separable"] = {label: float(v) for label, v in zip(self.labels, self.separable)}
         out["noise_std"] = self.noise_std
-        out["noise"] = "given" if self.noise_given else "estimated from the residual"
+        out["noise"] = {"given": "given", "the residual": "estimated from the residual",
+                        "the target's roughness": "the target's roughness"}[self.noise_source]
+        out["residual_noise_std"] = self.residual_std
         out["dof"] = self.dof
         if len(self.labels) > 1:
             out["correlation"] = self.correlation().tolist()
@@ -90,7 +96,7 @@ class Posterior:
         return out
 
 
-def posterior_at(profile, result, noise: float | None = None) -> Posterior | None:
+def posterior_at(profile, result, noise: float | None = None, floor: float = 0.0) -> Posterior | None:
     """The posterior at one of the profile's solves, where the inner solver gave the
     controls' response (Gauss-Newton); None otherwise."""
     lin = profile.linearisation(result)
@@ -98,11 +104,12 @@ def posterior_at(profile, result, noise: float | None = None) -> Posterior | Non
         return None
     s = next(s for s, r, _ in profile.solved if r is result)
     params = profile.params
-    return laplace(lin, params.labels, s, params.is_E, noise)
+    return laplace(lin, params.labels, s, params.is_E, noise, floor)
 
 
-def laplace(lin: Linearisation, labels, s, is_E, noise: float | None = None) -> Posterior:
-    """The posterior of s from a Linearisation at the optimum (noise: known std or None)."""
+def laplace(lin: Linearisation, labels, s, is_E, noise: float | None = None, floor: float = 0.0) -> Posterior:
+    """The posterior of s from a Linearisation at the optimum (noise: known std or None;
+    ``floor``: the noise the targets themselves show, which the residual underestimates)."""
     A = np.hstack([lin.A_q, lin.A_s])
     p = lin.A_q.shape[1]
     prior = np.r_[np.full(p, lin.prior), np.zeros(lin.A_s.shape[1])]
@@ -110,15 +117,17 @@ def laplace(lin: Linearisation, labels, s, is_E, noise: float | None = None) -> 
     H = gram + np.diag(prior)
     hat = np.trace(np.linalg.lstsq(H, gram, rcond=None)[0])  # tr(A H^-1 A^T): fitted parameters
     dof = max(lin.informative - hat, 1.0)
-    noise_std = float(noise) if noise is not None else float(np.sqrt(np.sum(lin.residual**2) / dof))
+    residual_std = float(np.sqrt(np.sum(lin.residual**2) / dof))
+    noise_std = float(noise) if noise is not None else max(residual_std, floor)
     Hqq = lin.A_q.T @ lin.A_q + lin.prior * np.eye(p)
     coupling = lin.A_q.T @ lin.A_s
     own = lin.A_s.T @ lin.A_s
     schur = own - coupling.T @ np.linalg.lstsq(Hqq, coupling, rcond=None)[0]
     covariance = noise_std**2 * _inverse(schur)
     separable = np.diag(schur) / np.where(np.diag(own) > 0, np.diag(own), 1.0)
-    return Posterior(list(labels), np.asarray(s, float), covariance, noise_std, noise is not None, float(dof),
-                     np.asarray(is_E, bool), separable)
+    source = "given" if noise is not None else "the target's roughness" if floor > residual_std else "the residual"
+    return Posterior(list(labels), np.asarray(s, float), covariance, noise_std, source, float(dof),
+                     np.asarray(is_E, bool), separable, residual_std)
 
 
 def _inverse(S: np.ndarray) -> np.ndarray:

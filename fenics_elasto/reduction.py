@@ -218,7 +218,7 @@ def missing_wall_motion(problem: InverseProblem, W: np.ndarray, theta, evaluatio
     direction = d / size if size > 0 else d
     if size > 0:
         J = problem.response(theta, direction[:, None])
-        rows = problem.misfit.gauss_newton_rows(evaluation.y)
+        rows = problem.misfit.statistical_rows(evaluation.y, evaluation.residual)  # as the linearisation's
         a = np.einsum("lkd,ldr->lkr", rows, J).reshape(len(lin.residual), 1)
         A = np.hstack([lin.A_q, a, lin.A_s])
         p = lin.A_q.shape[1] + 1
