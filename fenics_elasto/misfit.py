@@ -85,6 +85,7 @@ class Misfit:
         bounds = np.cumsum([0] + [count for count, _, _ in blocks])
         self.slices = [slice(a, b) for a, b in zip(bounds[:-1], bounds[1:])]
         self.weights = np.concatenate([np.full(count, weight, float) for count, _, weight in blocks] or [np.zeros(0)])
+        self._roughness = None
 
     @property
     def count(self) -> int:
@@ -116,7 +117,7 @@ class Misfit:
 
     def roughness(self) -> float:
         """The surface targets' own noise (0 without surfaces): the posterior's noise floor."""
-        if not hasattr(self, "_roughness"):
+        if self._roughness is None:  # a pass over every target vertex: once
             self._roughness = max([t.roughness() for t in self.terms if isinstance(t, SurfaceTerm)], default=0.0)
         return self._roughness
 
