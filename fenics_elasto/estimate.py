@@ -32,7 +32,7 @@ from fenics_elasto.interrupts import Interrupted
 from fenics_elasto.matching import match_surface
 from fenics_elasto.misfit import SurfaceTerm
 from fenics_elasto.objective import Evaluation, InverseProblem
-from fenics_elasto.posterior import Posterior, posterior_at
+from fenics_elasto.posterior import Posterior, posterior_at, profile_interval
 from fenics_elasto.reduction import bases_fit, missing_wall_motion
 from fenics_elasto.surrogate import MaterialSurrogate
 
@@ -235,6 +235,20 @@ class Estimator:
         floor = self.problem.misfit.roughness() if noise is None else 0.0
         return posterior_at(self.profile, result or self.profile.best(), noise, floor)
 
+    def profile_interval(self, post: Posterior) -> None:
+        """The profile-likelihood 95 % interval of a single estimated constant, in place
+        of the Laplace one: on the surrogate (dense algebra) with bases, by full solves on
+        small meshes (PROFILE_DOFS), not at all on big ones without bases (each value a
+        factorization)."""
+        if len(self.params) != 1 or (self.surrogate is None and self.problem.model.num_dofs > PROFILE_DOFS):
+            return
+        if self.surrogate is not None:
+            value = lambda s: self.surrogate.value_and_gradient(np.atleast_1d(s))[0]  # noqa: E731
+        else:
+            value = lambda s: self.profile.solve(self.params.to_theta(np.atleast_1d(s)), "ci").value  # noqa: E731
+        ends = profile_interval(value, float(post.s[0]), float(post.std_s[0]), post.noise_std, self.params.s_bounds()[0])
+        post.profile_s = np.array([ends])
+
     def check_identifiable(self) -> None:
         """After the scan: a constant whose 95 % interval (at the best full solve) is wider
         than its bounds is not determined by the data -- end now, not after the whole run."""
@@ -301,6 +315,8 @@ def estimate(problem: InverseProblem, options: Options | None = None, basis: np.
         log.info("interrupted: writing the best result so far")
     theta, best, forces = estimator.final()
     post = estimator.posterior(best)
+    if post is not None and not interrupted:
+        estimator.profile_interval(post)
     fit = fit_of_bases(estimator, theta, best)
     warnings += (estimator.warnings + _warnings(estimator, theta, interrupted, fit, post) + extent_warnings
                  + _target_warnings(problem, best))
@@ -375,6 +391,8 @@ def _bias_warnings(params, fit, post) -> list[str]:
                        "(--synthetic N with a higher rank)")
     return out
 
+
+PROFILE_DOFS = 60_000  # without bases, the profile interval's few full solves only below this size
 
 EXTENT_RATIO = 1.5  # a target this much larger or smaller than the surface it matches is suspect
 UNITS_RATIO = 3.0  # ... and this much larger is never right (mm against cm is 10x): refused

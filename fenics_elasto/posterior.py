@@ -49,14 +49,23 @@ class Posterior:
     is_E: np.ndarray
     separable: np.ndarray  # per constant: the share of its effect the controls cannot mimic (0: none)
     residual_std: float = 0.0  # the noise the residual alone shows
+    profile_s: np.ndarray | None = None  # (n, 2) the profile-likelihood 95 % interval in s, where computed
+
+    @property
+    def method(self) -> str:
+        return "profile likelihood" if self.profile_s is not None else "laplace"
 
     @property
     def std_s(self) -> np.ndarray:
         return np.sqrt(np.maximum(np.diag(self.covariance), 0.0))
 
     def interval(self, level: float = 1.959964) -> np.ndarray:
-        """(n, 2) the 95 % interval of each constant in its own units (E: from log E)."""
-        low, high = self.s - level * self.std_s, self.s + level * self.std_s
+        """(n, 2) the 95 % interval of each constant in its own units (E: from log E): the
+        profile likelihood's where it was computed, else the Laplace one."""
+        if self.profile_s is not None and level == 1.959964:
+            low, high = self.profile_s.T
+        else:
+            low, high = self.s - level * self.std_s, self.s + level * self.std_s
         return np.stack([np.where(self.is_E, np.exp(low), low), np.where(self.is_E, np.exp(high), high)], axis=1)
 
     def std(self) -> np.ndarray:
@@ -77,6 +86,7 @@ class Posterior:
         out["noise"] = {"given": "given", "the residual": "estimated from the residual",
                         "the target's roughness": "the target's roughness"}[self.noise_source]
         out["residual_noise_std"] = self.residual_std
+        out["interval"] = self.method
         out["dof"] = self.dof
         if len(self.labels) > 1:
             out["correlation"] = self.correlation().tolist()
@@ -128,6 +138,43 @@ def laplace(lin: Linearisation, labels, s, is_E, noise: float | None = None, flo
     source = "given" if noise is not None else "the target's roughness" if floor > residual_std else "the residual"
     return Posterior(list(labels), np.asarray(s, float), covariance, noise_std, source, float(dof),
                      np.asarray(is_E, bool), separable, residual_std)
+
+
+CHI2_95 = 3.841459  # the 95 % quantile of chi-square with one degree of freedom
+
+
+def profile_interval(value, s_hat: float, std: float, noise: float, bounds, tries: int = 8) -> tuple[float, float]:
+    """The 95 % profile-likelihood interval of one constant in s: where Phi*(s) (``value``,
+    the controls profiled out) rises CHI2_95 noise^2 / 2 above its minimum -- Phi* /
+    noise^2 is the negative log-likelihood. It follows Phi*'s own shape, which the Laplace
+    interval (the same for a quadratic Phi*) cannot: a constant that the data bound more
+    weakly on one side (a stiff inclusion barely deforms whether 10x or 50x the tissue)
+    gets a longer arm there, up to its bound. Secant steps on sqrt(Phi* - Phi*_min),
+    linear in s for a quadratic Phi*, from the Laplace ends: 2-3 values per side."""
+    phi_hat = value(s_hat)
+    target = np.sqrt(0.5 * CHI2_95) * noise
+    ends = []
+    for direction, bound in ((-1.0, bounds[0]), (1.0, bounds[1])):
+        room = abs(bound - s_hat)
+        below, above = (0.0, -target), None  # (offset, g) with g < 0 inside the interval, > 0 outside
+        t = min(1.959964 * std, room) if np.isfinite(std) and std > 0 else room
+        for _ in range(tries):
+            g = np.sqrt(max(value(s_hat + direction * t) - phi_hat, 0.0)) - target
+            if abs(g) < 0.02 * target:
+                break
+            if g < 0:
+                below = (t, g)
+                if t >= room:  # still inside at the bound: open to it
+                    break
+            else:
+                above = (t, g)
+            (t0, g0), (t1, g1) = below, above if above is not None else below
+            if above is None:  # not yet outside: extrapolate the secant from the optimum, at least 1.5x
+                t = min(room, max(1.5 * t, t * target / max(g + target, 1e-300)))
+            else:
+                t = t0 + (t1 - t0) * (-g0) / (g1 - g0)  # within the bracket
+        ends.append(s_hat + direction * t)
+    return ends[0], ends[1]
 
 
 def _inverse(S: np.ndarray) -> np.ndarray:

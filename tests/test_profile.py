@@ -139,3 +139,29 @@ def test_posterior_noise_is_the_larger_of_residual_and_roughness():
     assert rough.noise_std == 0.05 and rough.std_s[0] == pytest.approx(quiet.std_s[0] * 0.05 / quiet.noise_std)
     assert rough.record()["residual_noise_std"] == pytest.approx(quiet.noise_std)
     assert laplace(lin, ["s"], [1.0], [False], noise=0.02, floor=0.05).noise_std == 0.02  # stated: taken as is
+
+
+def test_profile_interval_follows_the_shape_of_phi():
+    """The profile-likelihood interval: for a quadratic Phi* it is the Laplace interval;
+    for a skewed one it is where Phi* rises chi2(0.95)/2 noise^2 (exact ends known); a
+    Phi* flat on one side leaves that side open to the bound."""
+    from fenics_elasto.posterior import profile_interval
+
+    calls = []
+
+    def counted(f):
+        return lambda s: calls.append(s) or f(s)
+
+    noise, std, s_hat = 0.1, 0.3, 1.0
+    quadratic = counted(lambda s: 2.0 + 0.5 * noise**2 * ((s - s_hat) / std) ** 2)
+    low, high = profile_interval(quadratic, s_hat, std, noise, (-5.0, 5.0))
+    assert (low, high) == pytest.approx((s_hat - 1.959964 * std, s_hat + 1.959964 * std), abs=1e-3)
+    assert len(calls) <= 3  # the Laplace ends are already right
+    skewed = lambda s: 2.0 + 0.5 * noise**2 * (np.expm1(s - s_hat) / std) ** 2  # noqa: E731
+    low, high = profile_interval(skewed, s_hat, std, noise, (-5.0, 5.0))
+    reach = 1.959964 * std
+    assert low - s_hat == pytest.approx(np.log(1 - reach), rel=0.03)
+    assert high - s_hat == pytest.approx(np.log(1 + reach), rel=0.03)
+    one_sided = lambda s: 2.0 + 0.5 * noise**2 * (min(s - s_hat, 0.0) / std) ** 2  # noqa: E731
+    low, high = profile_interval(one_sided, s_hat, std, noise, (-5.0, 5.0))
+    assert low == pytest.approx(s_hat - reach, abs=1e-3) and high == 5.0
