@@ -57,6 +57,14 @@ class Posterior:
 
     @property
     def std_s(self) -> np.ndarray:
+        """In s: the Laplace std, or where the profile interval exists its half-width / 1.96
+        (the std of the Gaussian with that 95 % interval: one number for a skewed answer)."""
+        if self.profile_s is not None:
+            return (self.profile_s[:, 1] - self.profile_s[:, 0]) / (2 * 1.959964)
+        return self.laplace_std_s
+
+    @property
+    def laplace_std_s(self) -> np.ndarray:
         return np.sqrt(np.maximum(np.diag(self.covariance), 0.0))
 
     def interval(self, level: float = 1.959964) -> np.ndarray:
@@ -65,7 +73,7 @@ class Posterior:
         if self.profile_s is not None and level == 1.959964:
             low, high = self.profile_s.T
         else:
-            low, high = self.s - level * self.std_s, self.s + level * self.std_s
+            low, high = self.s - level * self.laplace_std_s, self.s + level * self.laplace_std_s
         return np.stack([np.where(self.is_E, np.exp(low), low), np.where(self.is_E, np.exp(high), high)], axis=1)
 
     def std(self) -> np.ndarray:
@@ -74,7 +82,7 @@ class Posterior:
         return np.where(self.is_E, value * self.std_s, self.std_s)
 
     def correlation(self) -> np.ndarray:
-        d = np.where(self.std_s > 0, self.std_s, 1.0)
+        d = np.where(self.laplace_std_s > 0, self.laplace_std_s, 1.0)
         return self.covariance / np.outer(d, d)
 
     def record(self) -> dict:

@@ -48,6 +48,7 @@ from __future__ import annotations
 
 from collections import OrderedDict
 from dataclasses import asdict, dataclass
+from pathlib import Path
 from collections.abc import Callable
 
 import numpy as np
@@ -183,11 +184,38 @@ def mumps_failure(infog1: int, infog2: int, dofs: int) -> SolverError:
         cause = ("its workspace estimate was too small: raise it with PETSC_OPTIONS=\"-elasto_mat_mumps_icntl_14 200\" "
                  "(percent), or use [solver] method = \"iterative\"")
     elif infog1 == -19:
-        cause = ("it needs more memory than ICNTL(23) allows: raise -elasto_mat_mumps_icntl_23, use "
-                 "[solver] method = \"iterative\" or blr = 1e-8")
+        cause = ("it needs more memory than the machine has free (ICNTL(23): its MemAvailable per rank, or "
+                 "-elasto_mat_mumps_icntl_23): use [solver] method = \"iterative\", blr = 1e-8, or MPI ranks on more machines")
     else:
         cause = "see the MUMPS users' guide for this code; [solver] method = \"iterative\" avoids the factorization"
     return SolverError(f"{where}: {cause}")
+
+
+def _cap_workspace(F: PETSc.Mat, comm) -> None:
+    """MUMPS's working memory per rank capped (ICNTL(23), MB) at this node's available
+    memory shared among its ranks: beyond it MUMPS refuses with INFOG(1) = -19 (one line,
+    mumps_failure) instead of allocating what Linux overcommits and the OOM killer then
+    ends without a word (500k DOFs on a 24 GB machine: killed). A user's own
+    -elasto_mat_mumps_icntl_23 wins."""
+    if PETSc.Options().hasName(f"{PREFIX}mat_mumps_icntl_23"):
+        return
+    local = comm.Split_type(MPI.COMM_TYPE_SHARED)
+    ranks = local.Get_size()
+    local.Free()
+    available = _available_mb()
+    if available is not None:
+        F.setMumpsIcntl(23, max(int(0.9 * available / ranks), 1))
+
+
+def _available_mb() -> float | None:
+    """MemAvailable from /proc/meminfo in MB (None where there is no such file)."""
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) / 1024
+    except OSError:
+        return None
+    return None
 
 
 def _check_factor(pc: PETSc.PC, dofs: int) -> None:
@@ -249,6 +277,7 @@ class DirectSolver(LinearSolver):
             F = pc.getFactorMatrix()
             F.setMumpsIcntl(35, 2)  # block low-rank in factorization and solve
             F.setMumpsCntl(7, settings.blr)  # dropping tolerance of the low-rank blocks
+        _cap_workspace(pc.getFactorMatrix(), K.getComm().tompi4py())
         self._analysed = False
         self._setup()
 
