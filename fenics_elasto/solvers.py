@@ -48,7 +48,6 @@ from __future__ import annotations
 
 from collections import OrderedDict
 from dataclasses import asdict, dataclass
-from pathlib import Path
 from collections.abc import Callable
 
 import numpy as np
@@ -184,38 +183,11 @@ def mumps_failure(infog1: int, infog2: int, dofs: int) -> SolverError:
         cause = ("its workspace estimate was too small: raise it with PETSC_OPTIONS=\"-elasto_mat_mumps_icntl_14 200\" "
                  "(percent), or use [solver] method = \"iterative\"")
     elif infog1 == -19:
-        cause = ("it needs more memory than this machine can give (ICNTL(23): its free memory, at least half its "
-                 "total, per rank; or -elasto_mat_mumps_icntl_23): use [solver] method = \"iterative\", blr = 1e-8, "
-                 "or MPI ranks on more machines")
+        cause = ("it needs more memory than ICNTL(23) allows: raise -elasto_mat_mumps_icntl_23, use "
+                 "[solver] method = \"iterative\" or blr = 1e-8")
     else:
         cause = "see the MUMPS users' guide for this code; [solver] method = \"iterative\" avoids the factorization"
     return SolverError(f"{where}: {cause}")
-
-
-def _cap_workspace(F: PETSc.Mat, comm) -> None:
-    """MUMPS's working memory per rank capped (ICNTL(23), MB) at what this node could give
-    its ranks: beyond it MUMPS refuses with INFOG(1) = -19 (one line, mumps_failure)
-    instead of allocating what Linux overcommits and the OOM killer then ends without a
-    word (500k DOFs on this 24 GB machine: killed). The cap is the larger of the memory
-    free now and half the node's: a factorization that fits the machine is still tried
-    while another job holds memory for a while. A user's -elasto_mat_mumps_icntl_23 wins."""
-    if PETSc.Options().hasName(f"{PREFIX}mat_mumps_icntl_23"):
-        return
-    local = comm.Split_type(MPI.COMM_TYPE_SHARED)
-    ranks = local.Get_size()
-    local.Free()
-    cap = _memory_cap_mb()
-    if cap is not None:
-        F.setMumpsIcntl(23, max(int(0.9 * cap / ranks), 1))
-
-
-def _memory_cap_mb() -> float | None:
-    """max(MemAvailable, MemTotal / 2) from /proc/meminfo in MB (None without that file)."""
-    try:
-        fields = dict(line.split(":", 1) for line in Path("/proc/meminfo").read_text().splitlines() if ":" in line)
-        return max(int(fields["MemAvailable"].split()[0]), int(fields["MemTotal"].split()[0]) / 2) / 1024
-    except (OSError, KeyError, ValueError):
-        return None
 
 
 def _check_factor(pc: PETSc.PC, dofs: int) -> None:
@@ -277,7 +249,6 @@ class DirectSolver(LinearSolver):
             F = pc.getFactorMatrix()
             F.setMumpsIcntl(35, 2)  # block low-rank in factorization and solve
             F.setMumpsCntl(7, settings.blr)  # dropping tolerance of the low-rank blocks
-        _cap_workspace(pc.getFactorMatrix(), K.getComm().tompi4py())
         self._analysed = False
         self._setup()
 
