@@ -63,7 +63,7 @@ bench-adjoint: $(STAMP)
 	for f in $(VENV)/lib/libmpi* $(VENV)/lib/mpich; do ln -sfn $(abspath $$f) $(BENCH)/lib/; done
 	$(BENCH)/bin/python -m pip install -q --no-deps dolfinx-adjoint==0.4.0 fenicsx-compat==0.4.0
 	$(BENCH)/bin/python -m pip install -q pyadjoint-ad h5py
-	$(BENCH)/bin/python benchmarks/gradient_taped.py
+	PYTHONPATH=$(CURDIR) $(BENCH)/bin/python benchmarks/gradient_taped.py
 
 # ruff: pyflakes, pycodestyle, pyupgrade and bugbear checks (configured in pyproject.toml).
 lint: $(STAMP)
