@@ -178,7 +178,6 @@ def main():
                     analysis_only = method == "direct" and dofs > args.direct_limit
                     row = run_child(problem, method, ranks, analysis_only)
                     row["h"] = h
-                    dofs = row.get("dofs") or dofs
                     rows.append(row)
                     print(json.dumps(row), file=sys.stderr, flush=True)
     table(rows, mesh_times)

@@ -235,7 +235,7 @@ class Estimator:
         floor = self.problem.misfit.roughness() if noise is None else 0.0
         return posterior_at(self.profile, result or self.profile.best(), noise, floor)
 
-    def profile_interval(self, post: Posterior) -> None:
+    def profile_likelihood_interval(self, post: Posterior) -> None:
         """The profile-likelihood 95 % interval of a single estimated constant, in place
         of the Laplace one: on the surrogate (dense algebra) with bases, by full solves on
         small meshes (PROFILE_DOFS), not at all on big ones without bases (each value a
@@ -316,7 +316,7 @@ def estimate(problem: InverseProblem, options: Options | None = None, basis: np.
     theta, best, forces = estimator.final()
     post = estimator.posterior(best)
     if post is not None and not interrupted:
-        estimator.profile_interval(post)
+        estimator.profile_likelihood_interval(post)
     fit = fit_of_bases(estimator, theta, best)
     warnings += (estimator.warnings + _warnings(estimator, theta, interrupted, fit, post) + extent_warnings
                  + _target_warnings(problem, best))

@@ -61,6 +61,7 @@ class Surface:
             normals = np.c_[t[:, 1], -t[:, 0]]
         else:
             normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+        self._area_normals = normals  # |n| = the facet's length (2D) or twice its area (3D)
         length = np.linalg.norm(normals, axis=1, keepdims=True)
         self.normals = normals / np.where(length > 0, length, 1.0)
 
@@ -89,7 +90,7 @@ class Surface:
         so residuals run at 0.4-0.7x the noise."""
         points, cells = self.points, self.cells
         n = len(points)
-        edges = np.sort(cells[:, [0, 1]] if self.dim == 2 else cells[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+        edges = np.sort(cells, axis=1) if self.dim == 2 else triangle_edges(cells)
         edges, uses = np.unique(edges, axis=0, return_counts=True)
         valence = np.bincount(edges.ravel(), minlength=n)
         rim = np.zeros(n, bool)  # open ends and open borders (e.g. pieces written apart): no full ring
@@ -104,14 +105,8 @@ class Surface:
             return 0.0
         offset = points - sums / np.maximum(valence, 1)[:, None]
         normal = np.zeros_like(points)  # area-weighted vertex normals (2D: of the two segments)
-        corners = points[cells]
-        if self.dim == 2:
-            t = corners[:, 1] - corners[:, 0]
-            face = np.c_[t[:, 1], -t[:, 0]]
-        else:
-            face = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
         for column in range(cells.shape[1]):
-            np.add.at(normal, cells[:, column], face)
+            np.add.at(normal, cells[:, column], self._area_normals)
         normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-300)
         height = np.einsum("nd,nd->n", offset, normal)[inner]
         m = valence[inner]
