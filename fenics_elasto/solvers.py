@@ -33,7 +33,12 @@ asks for far less: the outer loop stops when log E moves by less than 1e-3 and t
 inner one at a relative gradient of 1e-6, so 1e-8 keeps two to three digits of margin
 while a tighter rtol would only add CG iterations.
 
-**Checks.** After every factorization: MUMPS INFOG(1) (PETSc does not raise when MUMPS
+**Checks.** Before the first factorization of a K above ``MEMORY_CHECK_DOFS`` DOFs,
+MUMPS's analysis alone (the numeric phase refused at once with a 1 MB workspace cap)
+says how much memory the factors will take; more than ``MEMORY_SHARE`` of what the
+machine has available (per node: the busiest rank's estimate times the ranks there)
+ends the run in one line -- Linux's OOM killer otherwise ends it without a word (it
+did, at 500k DOFs on 24 GB). After every factorization: MUMPS INFOG(1) (PETSc does not raise when MUMPS
 fails; a ``preonly`` solve then returns Inf). After every solve: the KSP converged
 reason, the residual and a finite solution. A failure raises ``SolverError`` (a
 UserError: the command line prints one line naming the cause and the remedy, exit 2).
@@ -54,10 +59,13 @@ import numpy as np
 from mpi4py import MPI
 from petsc4py import PETSc
 
+from fenics_elasto.budget import available_memory
 from fenics_elasto.errors import UserError
 
 PREFIX = "elasto_"
 DIRECT_LIMIT = 300_000  # DOFs: "auto" factorizes up to here (benchmarks/scale.py)
+MEMORY_CHECK_DOFS = 100_000  # direct: above this, MUMPS's analysis first (~6 % of a factorization)
+MEMORY_SHARE = 0.8  # ... and refuse factors estimated above this share of the available memory
 REFINEMENTS = 10  # direct: at most this many refinement steps per solve
 MAX_ITERATIONS = 2000  # iterative: CG iterations per right-hand side
 WARM_COLUMNS = (8, 64)  # WarmStart keeps at least 8 recent solutions, at most 64
@@ -190,6 +198,41 @@ def mumps_failure(infog1: int, infog2: int, dofs: int) -> SolverError:
     return SolverError(f"{where}: {cause}")
 
 
+def factor_memory(K: PETSc.Mat, factor: str) -> float:
+    """Bytes MUMPS's analysis of K says its in-core factorization needs on the busiest
+    node (the busiest rank's estimate, INFOG(16), times the ranks sharing its node,
+    capped by the total, INFOG(17)); a throwaway KSP with a 1 MB workspace cap, so the
+    numeric phase stops at once (INFOG(1) = -19)."""
+    ksp = _new_ksp(K)
+    ksp.setType("preonly")
+    pc = ksp.getPC()
+    pc.setType(factor)
+    pc.setFactorSolverType("mumps")
+    pc.setFactorSetUpSolverType()
+    F = pc.getFactorMatrix()
+    F.setMumpsIcntl(23, 1)
+    ksp.setUp()
+    busiest, total = F.getMumpsInfog(16), F.getMumpsInfog(17)  # MB, after the analysis
+    ksp.destroy()
+    node = K.getComm().tompi4py().Split_type(MPI.COMM_TYPE_SHARED)
+    ranks_here = node.Get_size()
+    node.Free()
+    return 1e6 * min(busiest * ranks_here, total)
+
+
+def check_factor_fits(K: PETSc.Mat, factor: str, dofs: int) -> None:
+    """A SolverError, the same on every rank, if the factors would not fit in memory."""
+    comm = K.getComm().tompi4py()
+    need = factor_memory(K, factor)
+    have = available_memory()
+    if comm.allreduce(need > MEMORY_SHARE * have, op=MPI.LOR):
+        need, have = comm.allreduce(need, op=MPI.MAX), comm.allreduce(have, op=MPI.MIN)
+        raise SolverError(f"the direct factorization of K ({dofs:,} DOFs) needs ~{need / 1e9:.3g} GB "
+                          f"(MUMPS's analysis), over {MEMORY_SHARE:.0%} of the {have / 1e9:.3g} GB this machine "
+                          f"has available: "
+                          f"use [solver] method = \"iterative\" (or \"auto\"), or more machines")
+
+
 def _check_factor(pc: PETSc.PC, dofs: int) -> None:
     F = pc.getFactorMatrix()
     infog1 = F.getMumpsInfog(1)  # global: the same on every rank
@@ -250,6 +293,8 @@ class DirectSolver(LinearSolver):
             F.setMumpsIcntl(35, 2)  # block low-rank in factorization and solve
             F.setMumpsCntl(7, settings.blr)  # dropping tolerance of the low-rank blocks
         self._analysed = False
+        if self.dofs > MEMORY_CHECK_DOFS:
+            check_factor_fits(K, settings.factor, self.dofs)
         self._setup()
 
     def _setup(self) -> None:

@@ -216,6 +216,26 @@ def test_mumps_failure_is_an_error(cantilever, petsc_option):
         _solve_at(model, cantilever, np.array([1000.0]), _load(model))
 
 
+def test_factors_too_big_for_the_machine_are_refused_before_factorizing(cantilever, monkeypatch):
+    """MUMPS's analysis first: its memory estimate against what the machine has (the
+    OOM killer otherwise ends a too-big factorization without a word)."""
+    import fenics_elasto.solvers as solvers
+
+    model = ElasticModel(cantilever, SolverSettings(method="direct"))
+    _, nu = material_values(cantilever)
+    K = model.constrained_stiffness(model.coefficients([1000.0], nu), model.clamped_dofs(cantilever.fixed))
+    need = solvers.factor_memory(K, "lu")
+    assert 1e5 < need < 1e9  # a few thousand DOFs: MBs, not GBs
+    monkeypatch.setattr(solvers, "MEMORY_CHECK_DOFS", 0)
+    _solve_at(model, cantilever, np.array([1000.0]), _load(model))  # fits: solved
+    assert model.factorizations == 1
+    monkeypatch.setattr(solvers, "available_memory", lambda: 0.5 * need)
+    fresh = ElasticModel(cantilever, SolverSettings(method="direct"))
+    with pytest.raises(SolverError, match=r"the direct factorization of K \([\d,]+ DOFs\) needs ~.* GB.*iterative"):
+        _solve_at(fresh, cantilever, np.array([1000.0]), _load(fresh))
+    assert fresh.factorizations == 0
+
+
 def test_cg_that_does_not_converge_is_an_error(cantilever, petsc_option):
     petsc_option("elasto_ksp_max_it", 2)
     model = ElasticModel(cantilever, SolverSettings(method="iterative"))
