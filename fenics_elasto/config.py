@@ -477,8 +477,9 @@ TARGET = Table({
     "landmarks": Key(String("a landmarks file")),
     "landmark_weight": Key(Number(gt=0)),
     "noise": Key(Number(gt=0)),
+    "smooth": Key(Choice("auto", "off"), "auto"),
 }, exclusive=[("surface", "surfaces")], one_of=("surface", "surfaces", "landmarks"),
-   expected="a table {surface or surfaces, landmarks, landmark_weight, noise}")
+   expected="a table {surface or surfaces, landmarks, landmark_weight, noise, smooth}")
 
 OPTIMIZER = Table({
     "inner": Key(Choice("auto", "gauss-newton", "lbfgs", "lbfgs-forces"), "auto"),

@@ -327,6 +327,9 @@ def estimate(problem: InverseProblem, options: Options | None = None, basis: np.
     record["uncertainty"] = post.record() if post is not None else {
         "note": f"not computed: the {estimator.inner_name} inner solver gives no response of the controls "
                 "(use reduced bases, or inner = \"gauss-newton\")"}
+    smoothing = problem.misfit.smoothing() if problem.misfit is not None else None
+    if smoothing is not None:
+        record["uncertainty"]["target_smoothed"] = smoothing
     if post is not None:
         for line in describe_uncertainty(post, theta):
             log.info(line)
