@@ -42,9 +42,9 @@ class SurfaceTerm:
         return out
 
     def roughness(self) -> float:
-        """The targets' own noise (Surface.roughness), rms over the rows matched to each."""
+        """The targets' own noise (Surface.noise), rms over the rows matched to each."""
         counts = np.bincount(self.surface_of, minlength=len(self.surfaces))
-        variance = sum(c * s.roughness() ** 2 for c, s in zip(counts, self.surfaces) if c)
+        variance = sum(c * s.noise() ** 2 for c, s in zip(counts, self.surfaces) if c)
         return float(np.sqrt(variance / max(counts.sum(), 1)))
 
     def curvature_directions(self, y: np.ndarray) -> np.ndarray:
@@ -125,7 +125,7 @@ class Misfit:
         if not smoothed:
             return None
         return {"surfaces": len(smoothed), "noise_before": max(s.smoothed_from for s in smoothed),
-                "noise_after": max(s.roughness() for s in smoothed)}
+                "noise_after": max(s.noise() for s in smoothed)}
 
     def roughness(self) -> float:
         """The surface targets' own noise (0 without surfaces): the posterior's noise floor."""

@@ -26,8 +26,8 @@ from fenics_elasto.errors import UserError, require
 
 
 ROUGH_SHARE = 0.1  # a target rougher than this share of its mean edge is smoothed before matching
-TAUBIN_STEPS = (0.5, -0.5)  # lambda, mu
-TAUBIN_PASSES = 20
+TAUBIN_STEPS = (0.5, -0.5)  # lambda, mu of Surface.smoothed
+TAUBIN_PASSES = 20  # noise falls ~13x on the phantom's organs; a clean organ moves < 1e-5 of its size
 
 
 def _barycentric(p, corners):
@@ -62,6 +62,7 @@ class Surface:
         self._last = None  # (x, simplex, cp) of the latest query: the curvature rows ask again at the same x
         self._roughness = None
         self.smoothed_from = None  # the roughness before smoothed() made this surface
+        self.noise_gain = 1.0  # smoothed(): the share of white noise its filter lets through
 
         corners = self.points[self.cells]
         if self.dim == 2:
@@ -109,23 +110,38 @@ class Surface:
 
     def smoothed(self, passes: int = TAUBIN_PASSES) -> Surface:
         """Taubin's lambda|mu smoothing (a shrink step lambda = 0.5, then an inflate step
-        mu = -0.53 of the umbrella Laplacian, ``passes`` times): a low-pass filter that
-        removes noise at the sampling's wavelength without shrinking the shape, as a
-        plain Laplacian would. Rim vertices stay put."""
+        mu = -0.5 of the umbrella Laplacian, ``passes`` times): a low-pass filter that
+        removes noise at the sampling's wavelength (an eigenvalue k of the Laplacian is
+        damped by (1 - k^2 / 4)^passes) while a smooth shape, k ~ 0, moves only to second
+        order -- a plain Laplacian shrinks it, Taubin's mu = -0.53 inflated the phantom's
+        organs by 1.4e-4 cm, worth ~1 % of E. Rim vertices stay put."""
         edges, valence, rim = self._rings()
         n = len(self.points)
         ones = np.ones(len(edges))
         adjacency = sparse.coo_matrix((np.r_[ones, ones], (np.r_[edges[:, 0], edges[:, 1]],
                                                           np.r_[edges[:, 1], edges[:, 0]])), shape=(n, n)).tocsr()
-        free = (~rim & (valence >= 2))[:, None]
-        points = self.points.copy()
+        inner = ~rim & (valence >= 2)
+        # The filter is linear and acts on each column alike: a column of unit white noise
+        # beside the coordinates measures how much of the target's noise it lets through.
+        probe = np.random.default_rng(0).standard_normal(n)
+        columns = np.c_[self.points, probe]
         for _ in range(passes):
             for factor in TAUBIN_STEPS:
-                umbrella = adjacency @ points / np.maximum(valence, 1)[:, None] - points
-                points += factor * free * umbrella
-        out = Surface(points, self.cells)
+                umbrella = adjacency @ columns / np.maximum(valence, 1)[:, None] - columns
+                columns += factor * inner[:, None] * umbrella
+        out = Surface(columns[:, :-1], self.cells)
         out.smoothed_from = self.roughness()
+        out.noise_gain = float(np.std(columns[inner, -1])) if inner.any() else 1.0
         return out
+
+    def noise(self) -> float:
+        """The noise a point matched to this surface sees: its roughness; once smoothed,
+        the noise it had times the filter's gain -- the roughness left measures only the
+        highest frequencies, while the filtered noise keeps wiggles a few samples long
+        (the letter at 1 % noise: roughness 0.092 -> 0.006, filtered noise ~0.4 x 0.092)."""
+        if self.smoothed_from is None:
+            return self.roughness()
+        return self.noise_gain * self.smoothed_from
 
     def roughness(self) -> float:
         """The noise a measured surface carries, from the surface alone: each vertex's offset

@@ -143,7 +143,10 @@ def test_rough_targets_are_smoothed_without_shrinking():
     noisy = Surface(points + std * rng.standard_normal(points.shape), triangles)
     smooth = noisy.smoothed()
     assert noisy.is_rough() and smooth.smoothed_from == pytest.approx(std, rel=0.05)
-    assert smooth.roughness() < 0.1 * std
+    assert smooth.roughness() < 0.1 * std  # the highest frequencies: gone
+    probe = Surface(points + std * rng.standard_normal(points.shape), triangles).smoothed()
+    shift = np.linalg.norm(probe.points, axis=1) - np.linalg.norm(smooth.points, axis=1)  # two draws: filtered noise
+    assert smooth.noise() == pytest.approx(np.std(shift) / np.sqrt(2), rel=0.15)  # what a matched point sees
     radius = np.linalg.norm(smooth.points, axis=1)
     assert abs(radius.mean() - 20.0) < 0.02 * std  # no shrinking (a plain Laplacian: -0.1 std per pass here)
     assert np.sqrt(np.mean((radius - 20.0) ** 2)) < 0.3 * std  # the noise itself mostly gone
@@ -165,7 +168,8 @@ def test_a_rough_target_is_smoothed_and_its_interval_holds_the_truth(letter, tmp
     mesh.save(tmp_path / "noisy.vtp")
     found = estimate(InverseProblem(load_scene(letter.scene.path, [f"target.surface='{tmp_path / 'noisy.vtp'}'"])))
     smoothed = found["uncertainty"]["target_smoothed"]
-    assert smoothed["noise_before"] == pytest.approx(std, rel=0.1) and smoothed["noise_after"] < 0.2 * std
+    assert smoothed["noise_before"] == pytest.approx(std, rel=0.1)
+    assert 0.3 * std < smoothed["noise_after"] < 0.7 * std  # the filter passes ~half of white noise on a line
     lo, hi = found["uncertainty"]["letter.nu"]["ci95"]
     assert lo <= 0.3 <= hi and hi - lo < 0.2, (found.materials, lo, hi)  # measured: 0.256 (0.177-0.320)
 
