@@ -32,7 +32,7 @@ from fenics_elasto.interrupts import Interrupted
 from fenics_elasto.matching import match_surface
 from fenics_elasto.misfit import SurfaceTerm
 from fenics_elasto.objective import Evaluation, InverseProblem
-from fenics_elasto.posterior import Posterior, posterior_at, profile_interval
+from fenics_elasto.posterior import Posterior, posterior_at, profile_interval, untrusted_sides
 from fenics_elasto.reduction import bases_fit, missing_wall_motion
 from fenics_elasto.surrogate import MaterialSurrogate
 
@@ -246,7 +246,12 @@ class Estimator:
             value = lambda s: self.surrogate.value_and_gradient(np.atleast_1d(s))[0]  # noqa: E731
         else:
             value = lambda s: self.profile.solve(self.params.to_theta(np.atleast_1d(s)), "ci").value  # noqa: E731
-        ends = profile_interval(value, float(post.s[0]), float(post.std_s[0]), post.noise_std, self.params.s_bounds()[0])
+        s_hat, std = float(post.s[0]), float(post.std_s[0])
+        ends, jagged = untrusted_sides(profile_interval(value, s_hat, std, post.noise_std, self.params.s_bounds()[0]),
+                                       s_hat, std)
+        if jagged:
+            self.warnings.append(f"{self.params.labels[0]}: Phi* is not smooth beside the answer (a rough target, or "
+                                 "an inner fit with several minima): the interval is the Laplace one on that side")
         post.profile_s = np.array([ends])
 
     def check_identifiable(self) -> None:

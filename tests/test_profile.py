@@ -231,3 +231,20 @@ def test_profile_interval_follows_the_shape_of_phi():
     one_sided = lambda s: 2.0 + 0.5 * noise**2 * (min(s - s_hat, 0.0) / std) ** 2  # noqa: E731
     low, high = profile_interval(one_sided, s_hat, std, noise, (-5.0, 5.0))
     assert low == pytest.approx(s_hat - reach, abs=1e-3) and high == 5.0
+
+
+def test_a_jagged_phi_does_not_shrink_the_interval():
+    """Phi* that jumps up right beside the answer (inner fits in other local minima on a
+    rough target) would give a profile interval of almost nothing; that side falls back to
+    the Laplace end and says so. A skewed Phi*'s shorter side is kept."""
+    from fenics_elasto.posterior import profile_interval, untrusted_sides
+
+    noise, std, s_hat = 0.1, 0.3, 1.0
+    reach = 1.959964 * std
+    jagged = lambda s: 2.0 + (0.0 if s == s_hat else 1.0) + 0.5 * noise**2 * ((s - s_hat) / std) ** 2  # noqa: E731
+    ends = profile_interval(jagged, s_hat, std, noise, (-5.0, 5.0))
+    assert ends[1] - ends[0] < 0.01 * reach  # what the profile alone would report
+    assert untrusted_sides(ends, s_hat, std) == ((s_hat - reach, s_hat + reach), True)
+    skewed = lambda s: 2.0 + 0.5 * noise**2 * (np.expm1(s - s_hat) / std) ** 2  # noqa: E731
+    ends = profile_interval(skewed, s_hat, std, noise, (-5.0, 5.0))
+    assert untrusted_sides(ends, s_hat, std) == (ends, False)
