@@ -192,8 +192,8 @@ def target_surface(path: Path, gdim: int, smooth: str) -> Surface:
     """A target surface, smoothed first when it is rough (``smooth = "auto"``): the
     closest point to a noisy, finely sampled surface is its nearest spike, so the misfit
     is jagged in the materials and the optimiser lands in one of its many local minima
-    (phantom, 0.08 mm of noise on organs sampled every 0.3 mm: E +4 % to +29 % with
-    sigmas of 0.002-0.7 %; smoothed: within 2 % and an interval that holds the truth).
+    (phantom, 0.08 mm of noise on organs sampled every 0.3 mm: E +4 %, +29 %, +10 % with
+    sigmas of 0.7 %, 0.006 %, 0.002 %; smoothed: within 2 %, intervals holding the truth).
     3D only: organs are smooth, while 2D outlines have corners that a noisy polyline
     cannot tell from its noise -- smoothing rounded the letter A's and moved its nu by
     -3 % (0.5 % noise, 30 draws: -3.7 % against -0.6 % unsmoothed)."""
@@ -201,7 +201,7 @@ def target_surface(path: Path, gdim: int, smooth: str) -> Surface:
     if smooth == "auto" and gdim == 3 and surface.is_rough():
         smoothed = surface.smoothed()
         log.info(f"note: {path.name}: rough (noise ~{surface.roughness():.3g}, mean edge {surface.mean_edge:.3g}): "
-                 f"smoothed before matching (noise left ~{smoothed.roughness():.3g}); [target] smooth = \"off\" keeps it")
+                 f"smoothed before matching (noise left ~{smoothed.noise():.3g}); [target] smooth = \"off\" keeps it")
         return smoothed
     return surface
 
