@@ -171,6 +171,7 @@ BAD_PROBLEMS = {
     "landmark_weight 0": ({"target": {"landmark_weight": 0}}, (), "estimate", "problem.toml: target.landmark_weight:",
                           ["expected a number > 0, got 0"]),
     "noise negative": ({"target": {"noise": -0.1}}, (), "estimate", "problem.toml: target.noise:", ["got -0.1"]),
+    "smooth unknown": ({"target": {"smooth": "yes"}}, (), "estimate", "problem.toml: target.smooth:", ["auto", "off"]),
     # optimizer
     "optimizer a number": ({"optimizer": 5}, (), "estimate", "problem.toml: optimizer:", ["expected a table, got 5"]),
     "optimizer typo": ({"optimiser": {"scan": 3}}, (), "estimate", "problem.toml: [optimiser]:",
@@ -459,7 +460,7 @@ def test_scene_spec_defaults(tmp_path):
 def test_target_forms():
     landmarks_only, _ = problem({"target": {"surface": DROP, "landmarks": "l.csv"}})
     assert landmarks_only["target"] == {"surface": None, "surfaces": None, "landmarks": "l.csv",
-                                        "landmark_weight": None, "noise": None}
+                                        "landmark_weight": None, "noise": None, "smooth": "auto"}
     per_group, _ = problem({"target": {"surface": DROP, "surfaces": {"outline": "o.vtp"}, "landmarks": "l.csv",
                                        "landmark_weight": 2, "noise": 0.05}})
     assert per_group["target"]["surfaces"] == {"outline": "o.vtp"} and per_group["target"]["landmark_weight"] == 2.0
