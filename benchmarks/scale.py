@@ -28,14 +28,13 @@ from pathlib import Path
 
 import fenics_elasto  # noqa: F401  (imports dolfinx_solver before petsc4py)
 from mpi4py import MPI
-from petsc4py import PETSc
 
 from fenics_elasto.elasticity import ElasticModel
 from fenics_elasto.logs import quiet
 from fenics_elasto.meshing import build_scene
 from fenics_elasto.scene import load_scene
 from fenics_elasto.simulate import material_values, simulate
-from fenics_elasto.solvers import SolverSettings
+from fenics_elasto.solvers import SolverSettings, mumps_analysis
 
 HERE = Path(__file__).resolve()
 BIN = Path(sys.executable).parent
@@ -83,20 +82,10 @@ def child(problem: str, method: str, analysis_only: bool) -> dict:
 def mumps_estimates(model, c, clamped) -> dict:
     """MUMPS's analysis of K: estimated factorization memory and flops (no numeric phase)."""
     K = model.constrained_stiffness(c, clamped)
-    ksp = PETSc.KSP().create(K.getComm())
-    ksp.setOperators(K)
-    ksp.setType("preonly")
-    pc = ksp.getPC()
-    pc.setType("lu")
-    pc.setFactorSolverType("mumps")
-    pc.setFactorSetUpSolverType()
-    F = pc.getFactorMatrix()
-    F.setMumpsIcntl(23, 1)  # 1 MB allowed: the numeric phase refuses at once (INFOG(1) = -19)
     clock = time.perf_counter()
-    ksp.setUp()
-    out = {"analysis s": time.perf_counter() - clock, "est. factor GB": F.getMumpsInfog(17) / 1024,
-           "est. flops": F.getMumpsRinfog(1), "infog1": F.getMumpsInfog(1)}
-    ksp.destroy()
+    analysis = mumps_analysis(K)
+    out = {"analysis s": time.perf_counter() - clock, "est. factor GB": analysis["total MB"] / 1024,
+           "est. flops": analysis["flops"], "infog1": analysis["infog1"]}
     K.destroy()
     return out
 

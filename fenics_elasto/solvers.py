@@ -198,11 +198,11 @@ def mumps_failure(infog1: int, infog2: int, dofs: int) -> SolverError:
     return SolverError(f"{where}: {cause}")
 
 
-def factor_memory(K: PETSc.Mat, factor: str) -> float:
-    """Bytes MUMPS's analysis of K says its in-core factorization needs on the busiest
-    node (the busiest rank's estimate, INFOG(16), times the ranks sharing its node,
-    capped by the total, INFOG(17)); a throwaway KSP with a 1 MB workspace cap, so the
-    numeric phase stops at once (INFOG(1) = -19)."""
+def mumps_analysis(K: PETSc.Mat, factor: str = "lu") -> dict:
+    """MUMPS's analysis of K alone, no numeric phase: a throwaway KSP with a 1 MB
+    workspace cap, so the factorization stops at once (INFOG(1) = -19). Its estimates:
+    in-core factorization memory in MB (10^6 bytes) on the busiest rank, INFOG(16), and
+    over all ranks, INFOG(17); flops, RINFOG(1); and INFOG(1) itself."""
     ksp = _new_ksp(K)
     ksp.setType("preonly")
     pc = ksp.getPC()
@@ -212,8 +212,18 @@ def factor_memory(K: PETSc.Mat, factor: str) -> float:
     F = pc.getFactorMatrix()
     F.setMumpsIcntl(23, 1)
     ksp.setUp()
-    busiest, total = F.getMumpsInfog(16), F.getMumpsInfog(17)  # MB, after the analysis
+    out = {"busiest MB": F.getMumpsInfog(16), "total MB": F.getMumpsInfog(17), "flops": F.getMumpsRinfog(1),
+           "infog1": F.getMumpsInfog(1)}
     ksp.destroy()
+    return out
+
+
+def factor_memory(K: PETSc.Mat, factor: str) -> float:
+    """Bytes MUMPS's analysis of K says its in-core factorization needs on the busiest
+    node: the busiest rank's estimate times the ranks sharing its node, capped by the
+    total."""
+    analysis = mumps_analysis(K, factor)
+    busiest, total = analysis["busiest MB"], analysis["total MB"]
     node = K.getComm().tompi4py().Split_type(MPI.COMM_TYPE_SHARED)
     ranks_here = node.Get_size()
     node.Free()
