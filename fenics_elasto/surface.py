@@ -88,10 +88,11 @@ class Surface:
         corners = self.points[self.cells]
         return float(np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2).mean()) if len(self.cells) else 0.0
 
-    def _rings(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(unique edges, valence per vertex, rim): rim vertices have no full ring of
-        neighbours -- open borders in 3D (e.g. pieces written apart), polyline ends and
-        junctions in 2D."""
+    def _rings(self) -> tuple[sparse.csr_matrix, np.ndarray, np.ndarray]:
+        """(vertex adjacency, valence per vertex, rim): the umbrella Laplacian's parts --
+        adjacency @ x / valence - x is each vertex's offset to its neighbours' mean. Rim
+        vertices have no full ring of neighbours: open borders in 3D (e.g. pieces written
+        apart), polyline ends and junctions in 2D."""
         n = len(self.points)
         edges = np.sort(self.cells, axis=1) if self.dim == 2 else triangle_edges(self.cells)
         edges, uses = np.unique(edges, axis=0, return_counts=True)
@@ -100,7 +101,10 @@ class Surface:
         rim[edges[uses < 2].ravel()] = self.dim == 3
         if self.dim == 2:
             rim[valence != 2] = True
-        return edges, valence, rim
+        ones = np.ones(len(edges))
+        adjacency = sparse.coo_matrix((np.r_[ones, ones], (np.r_[edges[:, 0], edges[:, 1]],
+                                                          np.r_[edges[:, 1], edges[:, 0]])), shape=(n, n)).tocsr()
+        return adjacency, valence, rim
 
     def is_rough(self) -> bool:
         """Noisier than its own sampling resolves: roughness above ROUGH_SHARE of the mean
@@ -115,11 +119,8 @@ class Surface:
         damped by (1 - k^2 / 4)^passes) while a smooth shape, k ~ 0, moves only to second
         order -- a plain Laplacian shrinks it, Taubin's mu = -0.53 inflated the phantom's
         organs by 1.4e-4 cm, worth ~1 % of E. Rim vertices stay put."""
-        edges, valence, rim = self._rings()
+        adjacency, valence, rim = self._rings()
         n = len(self.points)
-        ones = np.ones(len(edges))
-        adjacency = sparse.coo_matrix((np.r_[ones, ones], (np.r_[edges[:, 0], edges[:, 1]],
-                                                          np.r_[edges[:, 1], edges[:, 0]])), shape=(n, n)).tocsr()
         inner = ~rim & (valence >= 2)
         # The filter is linear and acts on each column alike: a column of unit white noise
         # beside the coordinates measures how much of the target's noise it lets through.
@@ -155,15 +156,12 @@ class Surface:
         if self._roughness is not None:
             return self._roughness
         points, cells = self.points, self.cells
-        edges, valence, rim = self._rings()
-        sums = np.zeros_like(points)
-        np.add.at(sums, edges[:, 0], points[edges[:, 1]])
-        np.add.at(sums, edges[:, 1], points[edges[:, 0]])
+        adjacency, valence, rim = self._rings()
         inner = ~rim & (valence >= 2)
         if inner.sum() < 10:
             self._roughness = 0.0
             return 0.0
-        offset = points - sums / np.maximum(valence, 1)[:, None]
+        offset = points - adjacency @ points / np.maximum(valence, 1)[:, None]
         normal = np.zeros_like(points)  # area-weighted vertex normals (2D: of the two segments)
         for column in range(cells.shape[1]):
             np.add.at(normal, cells[:, column], self._area_normals)
