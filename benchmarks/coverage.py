@@ -20,12 +20,12 @@ the noise-free sigma (see the README).
 from __future__ import annotations
 
 import argparse
+import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
-import pyvista as pv
 
 import fenics_elasto  # noqa: F401
 from fenics_elasto.estimate import Options, estimate
@@ -34,6 +34,9 @@ from fenics_elasto.meshing import build_scene
 from fenics_elasto.objective import InverseProblem
 from fenics_elasto.scene import load_scene
 from fenics_elasto.simulate import simulate
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+import independent as ind  # noqa: E402  (tests/independent.py: noisy copies of targets)
 
 CASES = {  # name: (scene, source h, target h, truth settings, estimated label, truth, body size)
     "letter": ("letter-a", 0.4, 0.2, {"materials.letter.nu": 0.3}, "letter.nu", 0.3, 10.0),
@@ -50,18 +53,9 @@ def target_folder(tmp: Path, name: str) -> tuple[Path, dict[str, Path]]:
     return source, {g: tmp / name / "target" / f"surface_{g}.vtp" for g in scene.matched}
 
 
-def noisy_copy(surfaces: dict[str, Path], folder: Path, std: float, rng) -> dict:
+def noisy_targets(surfaces: dict[str, Path], folder: Path, std: float, rng) -> dict:
     folder.mkdir(parents=True, exist_ok=True)
-    out = {}
-    for group, path in surfaces.items():
-        mesh = pv.read(path)
-        planar = np.allclose(mesh.points[:, 2], 0.0)
-        noise = std * rng.standard_normal(mesh.points.shape)
-        if planar:
-            noise[:, 2] = 0.0
-        mesh.points = mesh.points + noise
-        mesh.save(folder / f"{group}.vtp")
-        out[group] = str(folder / f"{group}.vtp")
+    out = {group: str(ind.noisy_copy(path, folder / f"{group}.vtp", std, rng)) for group, path in surfaces.items()}
     return {"target": {"surfaces": out}}
 
 
@@ -74,7 +68,7 @@ def one_case(tmp: Path, name: str, levels, draws: int, known_noise: bool = False
         found, sigmas, inside, noises, start = [], [], [], [], time.perf_counter()
         determined = []
         for draw in range(draws if level > 0 else 1):
-            settings = noisy_copy(surfaces, tmp / name / f"noisy_{level}_{draw}", level * size, rng) if level > 0 \
+            settings = noisy_targets(surfaces, tmp / name / f"noisy_{level}_{draw}", level * size, rng) if level > 0 \
                 else {"target": {"surfaces": {g: str(p) for g, p in surfaces.items()}}}
             if known_noise and level > 0:  # the user states the noise: [target] noise
                 settings["target"]["noise"] = level * size

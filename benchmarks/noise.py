@@ -44,19 +44,6 @@ def organ_size(path) -> float:
     return float(np.max(lo_hi[:, 1] - lo_hi[:, 0]))
 
 
-def noisy(path, folder: Path, std: float, rng) -> str:
-    """A copy of the target file with Gaussian noise on every point (in-plane for 2D)."""
-    mesh = pv.read(path)
-    noise = std * rng.standard_normal(mesh.points.shape)
-    if np.allclose(mesh.points[:, 2], 0.0):
-        noise[:, 2] = 0.0
-    mesh.points = mesh.points + noise
-    folder.mkdir(parents=True, exist_ok=True)
-    out = folder / Path(path).name
-    mesh.save(out)
-    return str(out)
-
-
 def letter(out: Path):
     """(problem, {key: target file}, size, label, truth, retarget(files) -> toml)."""
     problem = bench.source("letter-a", out / "source-letter-a")
@@ -85,8 +72,9 @@ def one_case(name: str, out: Path, levels, draws: int) -> tuple[list[str], list[
         found, sigmas, held, noises, seconds, refused = [], [], [], [], [], 0
         for draw in range(draws if level > 0 else 1):
             folder = out / f"noise-{name}-{level:g}-{draw}"
-            files = {k: noisy(p, folder / "target", level / 100 * size, rng) if level > 0 else p
-                     for k, p in targets.items()}
+            (folder / "target").mkdir(parents=True, exist_ok=True)
+            files = {k: str(ind.noisy_copy(p, folder / "target" / Path(p).name, level / 100 * size, rng)) if level > 0
+                     else p for k, p in targets.items()}
             table = {"surface": files["surface"]} if "surface" in files else {"surfaces": files}
             toml = ind.retarget(problem, table, f"noise_{name}.toml")
             outcome = bench.estimate(toml, folder, settings)

@@ -440,6 +440,20 @@ def write_landmarks(path: Path, source: np.ndarray, target: np.ndarray) -> Path:
     return path
 
 
+def noisy_copy(path: Path, out: Path, std: float, rng) -> Path:
+    """A copy of a target file with Gaussian noise of ``std`` on every point, in every
+    direction the target has (2D targets stay in the z = 0 plane)."""
+    import pyvista as pv
+
+    mesh = pv.read(str(path))
+    noise = std * rng.standard_normal(mesh.points.shape)
+    if np.allclose(mesh.points[:, 2], 0.0):
+        noise[:, 2] = 0.0
+    mesh.points = mesh.points + noise
+    mesh.save(str(out))
+    return Path(out)
+
+
 def cached(out, case: str, params: dict, make: Callable[[Path], dict]) -> dict:
     """``make(folder)`` -> {name: path} run once per parameter set: the folder
     ``out/case-<hash of params>`` keeps the files and a list of them."""

@@ -10,6 +10,7 @@ from fenics_elasto.objective import InverseProblem
 from fenics_elasto.posterior import laplace
 from fenics_elasto.scene import load_scene
 from fenics_elasto.verification import taylor_test
+from independent import noisy_copy
 from targets import letter_case
 
 
@@ -152,18 +153,6 @@ def test_rough_targets_are_smoothed_without_shrinking():
     assert np.sqrt(np.mean((radius - 20.0) ** 2)) < 0.3 * std  # the noise itself mostly gone
 
 
-def _noisy_copy(path, out, std, seed=5):
-    import pyvista as pv
-
-    mesh = pv.read(path)
-    noise = std * np.random.default_rng(seed).standard_normal(mesh.points.shape)
-    if np.allclose(mesh.points[:, 2], 0.0):
-        noise[:, 2] = 0.0
-    mesh.points = mesh.points + noise
-    mesh.save(out)
-    return out
-
-
 def test_rough_organ_targets_are_smoothed_and_outlines_are_not(scenes, letter, tmp_path):
     """[target] smooth = "auto": the phantom's organ surfaces with noise of 0.3 edge
     lengths are smoothed (and say so, with the noise found before and after), clean ones
@@ -176,7 +165,7 @@ def test_rough_organ_targets_are_smoothed_and_outlines_are_not(scenes, letter, t
     write_matched_surfaces(tmp_path / "clean", phantom, ElasticModel(phantom).function(), pieces=4)
     clean = {g: tmp_path / "clean" / f"surface_{g}.vtp" for g in phantom.matched}
     std = 0.3 * min(read_surface(p, 3).mean_edge for p in clean.values())
-    noisy = {g: _noisy_copy(p, tmp_path / f"noisy_{g}.vtp", std) for g, p in clean.items()}
+    noisy = {g: noisy_copy(p, tmp_path / f"noisy_{g}.vtp", std, np.random.default_rng(5)) for g, p in clean.items()}
 
     def smoothing(files):
         table = ", ".join(f"{g} = '{p}'" for g, p in files.items())
@@ -187,7 +176,7 @@ def test_rough_organ_targets_are_smoothed_and_outlines_are_not(scenes, letter, t
     assert found["surfaces"] == 3 and found["noise_before"] == pytest.approx(std, rel=0.1)
     assert found["noise_after"] < 0.5 * std  # the filter's gain for white noise on a surface
     outline = letter.scene.path.parent / letter.scene.config["target"]["surface"]
-    rough = _noisy_copy(outline, tmp_path / "letter.vtp", 0.3 * read_surface(outline, 2).mean_edge)
+    rough = noisy_copy(outline, tmp_path / "letter.vtp", 0.3 * read_surface(outline, 2).mean_edge, np.random.default_rng(5))
     assert InverseProblem(load_scene(letter.scene.path, [f"target.surface='{rough}'"])).misfit.smoothing() is None
 
 
