@@ -45,7 +45,7 @@ def organ_size(path) -> float:
 
 
 def letter(out: Path):
-    """(problem, {key: target file}, size, label, truth, retarget(files) -> toml)."""
+    """(problem, {target key: file}, organ size, (material, key), truth, extra --set settings)."""
     problem = bench.source("letter-a", out / "source-letter-a")
     target = ind.letter_a(out / "truth", LETTER_NU)["target"]
     return problem, {"surface": target}, organ_size(target), ("letter", "nu"), LETTER_NU, []
