@@ -15,12 +15,14 @@ from fenics_elasto.logs import log
 from fenics_elasto.outputs import prepare_file, prepare_folder
 
 
-def reduced_basis(problem) -> np.ndarray | None:
-    """W from the scene's [reduction] table (bases file and rank), or None."""
+def reduced_basis(problem) -> tuple[np.ndarray | None, float | None]:
+    """(W, the share of held-out examples' energy the bases kept) from the scene's
+    [reduction] table (bases file and rank), or (None, None)."""
     from fenics_elasto.reduction import load_bases
 
     table = problem.scene.config["reduction"]
-    return None if table is None else load_bases(problem.scene.path.parent / table["bases"], problem, table["rank"])
+    return (None, None) if table is None else load_bases(problem.scene.path.parent / table["bases"], problem,
+                                                         table["rank"])
 
 
 def run_mesh(name: str, out: Path, size=None, seed=None, atlas_mesh: Path | None = None, **detail) -> Path:
@@ -76,12 +78,12 @@ def run_estimate(problem_path: Path, out: Path, overrides=(), check_mesh: bool =
     with prepare_folder(out) as folder:
         scene = load_scene(problem_path, overrides, command="estimate")
         problem = InverseProblem(scene)
-        basis = reduced_basis(problem)
+        basis, held_out = reduced_basis(problem)
         log.info(f"estimate {', '.join(problem.params.labels)}: {problem.model.num_dofs} dofs, {problem.force_dofs} "
                  "force dofs" + (f" reduced to rank {basis.shape[1]}" if basis is not None else "")
                  + f", {problem.observation.node_count} matched nodes"
                  + (f", {len(problem.misfit.landmark_rows())} landmarks" if len(problem.misfit.landmark_rows()) else ""))
-        result = estimate(problem, basis=basis)
+        result = estimate(problem, basis=basis, held_out=held_out)
         if check_mesh and not result["interrupted"]:
             result.record["mesh_check"] = mesh_check(problem_path, folder.path, overrides, result, basis)
         with folder.writing(result.record):

@@ -12,7 +12,7 @@ Before any solve the set-up is checked: a target that does not overlap the match
 surface, every E estimated (only ratios are identifiable), and a full force space that
 can fit the surfaces for any material (``check_determined``) end with one line.
 After a reduced estimate ``bases_fit`` says how much of the wall motion the bases
-can represent.
+can represent; bases that kept little of their held-out examples are warned about.
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ from fenics_elasto.matching import match_surface
 from fenics_elasto.misfit import SurfaceTerm
 from fenics_elasto.objective import Evaluation, InverseProblem
 from fenics_elasto.posterior import Posterior, posterior_at, profile_interval, untrusted_sides
-from fenics_elasto.reduction import bases_fit, missing_wall_motion
+from fenics_elasto.reduction import bases_fit, missing_wall_motion, reach_warning
 from fenics_elasto.surrogate import MaterialSurrogate
 
 
@@ -296,9 +296,11 @@ class Estimator:
 
 
 
-def estimate(problem: InverseProblem, options: Options | None = None, basis: np.ndarray | None = None) -> EstimateResult:
+def estimate(problem: InverseProblem, options: Options | None = None, basis: np.ndarray | None = None,
+             held_out: float | None = None) -> EstimateResult:
     """Run the nested optimisation. On Ctrl-C it stops and returns the best result so far
-    (``interrupted``: true)."""
+    (``interrupted``: true). ``held_out``: the share of held-out examples' energy the
+    bases kept in training (reduction.held_out_energy), if known."""
     start = time.perf_counter()
     scene = problem.scene
     require(len(problem.params), f"{scene.path}: nothing to estimate: mark at least one E or nu with estimate = true")
@@ -308,7 +310,8 @@ def estimate(problem: InverseProblem, options: Options | None = None, basis: np.
     options = options or Options.from_scene(scene)
     phi_undeformed = check_overlap(problem)
     extent_warnings = check_extent(problem)
-    warnings = [w for w in [check_determined(problem, basis, options, choose_inner(problem, options, basis))] if w]
+    warnings = [w for w in [check_determined(problem, basis, options, choose_inner(problem, options, basis)),
+                            None if basis is None else reach_warning(held_out, basis.shape[1])] if w]
     estimator = Estimator(problem, options, basis)
     interrupted = False
     try:
@@ -328,7 +331,7 @@ def estimate(problem: InverseProblem, options: Options | None = None, basis: np.
     for text in warnings:
         log.warning(text)
     record = _record(estimator, theta, best, phi_undeformed, warnings, interrupted, start)
-    record["bases_fit"] = fit
+    record["bases_fit"] = fit if fit is None else {**fit, "held_out_energy": held_out}
     record["uncertainty"] = post.record() if post is not None else {
         "note": f"not computed: the {estimator.inner_name} inner solver gives no response of the controls "
                 "(use reduced bases, or inner = \"gauss-newton\")"}

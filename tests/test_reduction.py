@@ -11,7 +11,7 @@ from fenics_elasto.errors import UserError
 from fenics_elasto.estimate import estimate
 from fenics_elasto.meshing import build_scene
 from fenics_elasto.objective import InverseProblem
-from fenics_elasto.reduction import load_bases, pca, train_bases
+from fenics_elasto.reduction import Bases, load_bases, pca, train_bases
 from fenics_elasto.scene import load_scene
 from targets import fine_simulation, inclusion_ratio_4_target, letter_case
 from test_gradients import taylor_rates
@@ -68,7 +68,8 @@ def test_bases_from_another_mesh_are_refused(tmp_path, letter):
     (tmp_path / "ex").symlink_to(tmp_path / "ex_scene" / "target")
     bases = train_bases(trainer, examples, rank=1)
     bases.save(tmp_path / "b.npz")
-    assert load_bases(tmp_path / "b.npz", trainer, None).shape == (trainer.force_dofs, 1)
+    W, held_out = load_bases(tmp_path / "b.npz", trainer, None)
+    assert W.shape == (trainer.force_dofs, 1) and held_out is None  # one example: nothing to hold out
     other = InverseProblem(load_scene(build_scene("letter-a", tmp_path / "other", size=0.5)), target=False)
     with pytest.raises(UserError, match="other loaded nodes"):
         load_bases(tmp_path / "b.npz", other, None)
@@ -97,6 +98,9 @@ def test_train_then_reduced_estimate_from_the_command_line(tmp_path):
     assert proc.returncode == 0, proc.stderr[-2000:]
     result = json.loads((tmp_path / "result" / "result.json").read_text())
     assert result["rank"] == 4 and result["inner_solver"] == "gauss-newton"
+    trained = Bases.read(tmp_path / "bases.npz").held_out
+    assert result["bases_fit"]["held_out_energy"] == trained > 0.9  # stated in result.json; no warning below 0.9
+    assert not any("left out of their training" in w for w in result["warnings"]), result["warnings"]
     ratio = result["materials"]["inclusion"]["E"] / result["materials"]["matrix"]["E"]
     assert abs(ratio - 4.0) / 4.0 < 0.03, ratio
     # The same bases (trained serially) under 2 MPI ranks: canonical node order.

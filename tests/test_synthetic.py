@@ -11,8 +11,8 @@ from conftest import run_cli
 from fenics_elasto.fields import SmoothFields
 from fenics_elasto.meshing import build_scene
 from fenics_elasto.objective import InverseProblem
-from fenics_elasto.estimate import Estimator, Options, _bias_warnings, fit_of_bases
-from fenics_elasto.reduction import Bases, missing_wall_motion, train_bases
+from fenics_elasto.estimate import Estimator, Options, _bias_warnings, estimate, fit_of_bases
+from fenics_elasto.reduction import Bases, missing_wall_motion, reach_warning, train_bases
 from fenics_elasto.scene import load_scene
 from fenics_elasto.synthetic import Generator, affine_basis, pressure_examples
 from targets import inclusion_ratio_4_target
@@ -47,6 +47,28 @@ def test_bases_hold_every_affine_wall_motion(inclusion):
     assert np.linalg.norm(d - bases.W @ (bases.W.T @ d)) < 1e-10 * np.linalg.norm(d)
     assert affine_basis(problem).shape[1] == 6  # one wall (top) in 2D: 2 shifts + 4 linear maps
     assert 0 < bases.held_out <= 1
+
+
+def test_bases_too_narrow_for_unseen_examples_are_warned_about(inclusion):
+    """Few short-wavelength examples at the affine rank: the bases keep little of the
+    examples left out of their training (cross-validated), and an estimate with them
+    says so; many examples at a high rank keep nearly all of it and stay quiet."""
+    _, problem = inclusion
+    narrow = train_bases(problem, [], rank=6, generator=Generator(12, seed=1, length=0.5))
+    wide = train_bases(problem, [], rank=20, generator=Generator(24, seed=1, length=1.0))
+    print("held-out energy, narrow and wide bases:", narrow.held_out, wide.held_out)  # measured 0.68, 0.99
+    assert narrow.held_out < 0.8 and wide.held_out > 0.95
+    assert "keep only 68 % of the energy of examples left out" in reach_warning(narrow.held_out, 6)
+    assert reach_warning(wide.held_out, 20) is None and reach_warning(None, 6) is None
+
+
+def test_an_estimate_with_narrow_bases_warns_and_records_their_reach(tmp_path, inclusion):
+    source, problem = inclusion
+    narrow = train_bases(problem, [], rank=6, generator=Generator(12, seed=1, length=0.5))
+    target = InverseProblem(load_scene(source, [inclusion_ratio_4_target(tmp_path / "fine")]))
+    result = estimate(target, basis=narrow.W, held_out=narrow.held_out)
+    assert result["bases_fit"]["held_out_energy"] == narrow.held_out
+    assert sum("keep only 68 %" in w for w in result["warnings"]) == 1, result["warnings"]
 
 
 def test_pressure_examples_are_forward_solves_at_the_drawn_materials(inclusion):
