@@ -230,10 +230,12 @@ def factor_memory(K: PETSc.Mat, factor: str) -> float:
     return 1e6 * min(busiest * ranks_here, total)
 
 
-def check_factor_fits(K: PETSc.Mat, factor: str, dofs: int) -> None:
-    """A SolverError, the same on every rank, if the factors would not fit in memory."""
+def check_factor_fits(K: PETSc.Mat, factor: str, dofs: int, need: float | None = None) -> float:
+    """A SolverError, the same on every rank, if the factors would not fit in the memory
+    available now; else the bytes they need (``need``: known already, from the analysis
+    of a matrix with K's pattern, which is all it depends on)."""
     comm = K.getComm().tompi4py()
-    need = factor_memory(K, factor)
+    need = factor_memory(K, factor) if need is None else need
     have = available_memory()
     if comm.allreduce(need > MEMORY_SHARE * have, op=MPI.LOR):
         need, have = comm.allreduce(need, op=MPI.MAX), comm.allreduce(have, op=MPI.MIN)
@@ -241,6 +243,7 @@ def check_factor_fits(K: PETSc.Mat, factor: str, dofs: int) -> None:
                           f"(MUMPS's analysis), over {MEMORY_SHARE:.0%} of the {have / 1e9:.3g} GB this machine "
                           f"has available: "
                           f"use [solver] method = \"iterative\" (or \"auto\"), or more machines")
+    return need
 
 
 def _check_factor(pc: PETSc.PC, dofs: int) -> None:
@@ -286,9 +289,11 @@ class LinearSolver:
 
 
 class DirectSolver(LinearSolver):
-    """MUMPS LU or Cholesky; analysis kept across refreshes; solutions refined to rtol."""
+    """MUMPS LU or Cholesky; analysis kept across refreshes; solutions refined to rtol.
+    Above MEMORY_CHECK_DOFS the factors must fit the memory available first
+    (``factor_need``: their size from an earlier analysis of this pattern, if known)."""
 
-    def __init__(self, K, clamped, settings, stats):
+    def __init__(self, K, clamped, settings, stats, factor_need: float | None = None):
         super().__init__(K, clamped, settings, stats)
         self.ksp.setType("preonly")
         pc = self.ksp.getPC()
@@ -303,8 +308,9 @@ class DirectSolver(LinearSolver):
             F.setMumpsIcntl(35, 2)  # block low-rank in factorization and solve
             F.setMumpsCntl(7, settings.blr)  # dropping tolerance of the low-rank blocks
         self._analysed = False
+        self.factor_need = factor_need
         if self.dofs > MEMORY_CHECK_DOFS:
-            check_factor_fits(K, settings.factor, self.dofs)
+            self.factor_need = check_factor_fits(K, settings.factor, self.dofs, factor_need)
         self._setup()
 
     def _setup(self) -> None:
@@ -492,6 +498,7 @@ class SolverCache:
         self._modes = None
         self._solvers: OrderedDict = OrderedDict()
         self._warm: dict = {}  # clamped set -> WarmStart, shared by its iterative solvers
+        self._factor_need: dict = {}  # clamped set -> bytes its direct factors need (one analysis each)
 
     def get(self, c, clamped: np.ndarray) -> LinearSolver:
         key = (tuple(np.round(np.asarray(c, float), 12)), clamped.tobytes())
@@ -513,7 +520,9 @@ class SolverCache:
 
     def _new(self, K: PETSc.Mat, clamped: np.ndarray) -> LinearSolver:
         if self.stats.method == "direct":
-            return DirectSolver(K, clamped, self.settings, self.stats)
+            solver = DirectSolver(K, clamped, self.settings, self.stats, self._factor_need.get(clamped.tobytes()))
+            self._factor_need[clamped.tobytes()] = solver.factor_need
+            return solver
         if self._modes is None:
             self._modes = self.near_nullspace()
         warm = self._warm.setdefault(clamped.tobytes(), WarmStart(K.getComm().tompi4py()))

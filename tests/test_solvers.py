@@ -229,6 +229,16 @@ def test_factors_too_big_for_the_machine_are_refused_before_factorizing(cantilev
     monkeypatch.setattr(solvers, "MEMORY_CHECK_DOFS", 0)
     _solve_at(model, cantilever, np.array([1000.0]), _load(model))  # fits: solved
     assert model.factorizations == 1
+    # A second solver of the same clamped set: its pattern's need is known, so it is checked
+    # against the memory available now (the first's factors take some) without a new analysis.
+    analyses = []
+    monkeypatch.setattr(solvers, "factor_memory", lambda *args: analyses.append(1) or need)
+    monkeypatch.setattr(solvers, "available_memory", lambda: 0.5 * need)
+    with pytest.raises(SolverError, match="needs ~"):
+        _solve_at(model, cantilever, np.array([2000.0]), _load(model))
+    monkeypatch.setattr(solvers, "available_memory", lambda: 2.0 * need)
+    _solve_at(model, cantilever, np.array([2000.0]), _load(model))
+    assert model.factorizations == 2 and analyses == []
     monkeypatch.setattr(solvers, "available_memory", lambda: 0.5 * need)
     fresh = ElasticModel(cantilever, SolverSettings(method="direct"))
     with pytest.raises(SolverError, match=r"the direct factorization of K \([\d,]+ DOFs\) needs ~.* GB.*iterative"):
