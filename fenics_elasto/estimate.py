@@ -246,7 +246,7 @@ class Estimator:
             value = lambda s: self.surrogate.value_and_gradient(np.atleast_1d(s))[0]  # noqa: E731
         else:
             value = lambda s: self.profile.solve(self.params.to_theta(np.atleast_1d(s)), "ci").value  # noqa: E731
-        s_hat, std = float(post.s[0]), float(post.std_s[0])
+        s_hat, std = float(post.s[0]), float(post.laplace_std_s[0])
         ends, jagged = untrusted_sides(profile_interval(value, s_hat, std, post.noise_std, self.params.s_bounds()[0]),
                                        s_hat, std)
         if jagged:
@@ -346,9 +346,14 @@ def estimate(problem: InverseProblem, options: Options | None = None, basis: np.
 
 
 def describe_uncertainty(post: Posterior, theta) -> list[str]:
-    """``prostate.E = 48.6 ± 1.9 (95 %: 45.0-52.4)`` per estimated constant."""
+    """``prostate.E = 48.6 ± 1.9 (95 %: 45.0-52.4)`` per estimated constant, and how much
+    a structured residual widened it (posterior.patch_covariance)."""
     return [f"{label} = {value:.4g} ± {sd:.2g} (95 %: {lo:.4g}-{hi:.4g})"
-            for label, value, sd, (lo, hi) in zip(post.labels, theta, post.std(), post.interval())]
+            + (f"; widened {w:.2g}x: the residual is structured, not noise" if w > WIDENED_NOTE else "")
+            for label, value, sd, (lo, hi), w in zip(post.labels, theta, post.std(), post.interval(), post.widening)]
+
+
+WIDENED_NOTE = 1.05  # a widening of the interval worth a word
 
 
 def fit_of_bases(estimator: Estimator, theta, best: InnerResult) -> dict | None:

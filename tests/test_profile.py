@@ -85,6 +85,40 @@ def test_linear_gaussian_posterior_is_exact():
     assert abs(np.mean(estimates) - 1.0) < 4 * spread / np.sqrt(400)
 
 
+def test_patch_std_sees_noise_correlated_in_space():
+    """A linear model whose noise is correlated along the observed points (a Gaussian
+    kernel over 4 and 12 point spacings): the spread of the least-squares estimates over
+    draws grows, the Laplace std (independent rows) does not, and the patch std follows
+    much of the growth; with independent noise it agrees with the Laplace std."""
+    from fenics_elasto.functional import Linearisation
+    from fenics_elasto.posterior import patch_covariance
+
+    rng = np.random.default_rng(0)
+    m, p = 400, 4
+    x = np.linspace(0.0, 1.0, m)[:, None]
+    A_q = np.cos(np.pi * x * np.arange(p))
+    A_s = np.sin(7 * x) + 0.3 * rng.standard_normal((m, 1))
+    A = np.hstack([A_q, A_s])
+    rows = []
+    for length in (0.0, 0.01, 0.03):
+        L = np.linalg.cholesky(np.exp(-0.5 * ((x - x.T) / length) ** 2) + 1e-8 * np.eye(m)) if length else np.eye(m)
+        estimates, laplace_std, patch_std = [], [], []
+        for _ in range(200):
+            y = A[:, -1] + 0.3 * (L @ rng.standard_normal(m))
+            fit, *_ = np.linalg.lstsq(A, y, rcond=None)
+            lin = Linearisation(y - A @ fit, A_q, A_s, 0.0, m)
+            estimates.append(fit[-1])
+            laplace_std.append(laplace(lin, ["s"], fit[-1:], [False]).std_s[0])
+            patch_std.append(np.sqrt(patch_covariance(lin, x)[0, 0]))
+        rows.append((np.std(estimates), np.mean(laplace_std), np.mean(patch_std)))
+    print("spread, Laplace std, patch std:", np.round(rows, 4))  # measured .045/.047/.045, .065/.044/.056, .093/.039/.055
+    (white, white_laplace, white_patch), (_, _, _), (wide, wide_laplace, wide_patch) = rows
+    assert abs(white_patch - white) < 0.15 * white and abs(white_laplace - white) < 0.15 * white
+    assert wide > 1.8 * white and wide_laplace < 0.5 * wide  # correlated noise: Laplace far too narrow
+    assert wide_patch > 1.3 * wide_laplace and wide_patch < 1.1 * wide  # the patches see much of it, not more
+    assert rows[1][2] > 1.15 * rows[1][1]
+
+
 def test_undetermined_constant_is_flagged():
     """A constant whose effect the controls can mimic exactly (A_s in span A_q): the
     Schur complement vanishes and the interval is infinite, wider than any bounds."""
