@@ -316,8 +316,9 @@ def index_page(out: Path, rows: list[dict], facts: dict, pictures: dict) -> str:
              "Targets: *clean* = the truth's organ surfaces; *noise s* = Gaussian noise of std s on every coordinate "
              "of every point; *voxels h* = each organ's partial volume on a grid of h mm voxels (random offset), "
              "marching cubes at 0.5, so no point corresponds to the source. The error is the E ratio found against "
-             "the true one; sigma (when the estimate reports it) is its Laplace standard deviation from the "
-             "residual (noise only, no model bias).", ""]
+             "the true one; sigma (when the estimate reports it) is its standard deviation from the residual: "
+             "the noise's, widened where the residual is structured in space (a voxel staircase); a bias the "
+             "residual cannot show is not in it.", ""]
     lines += table(rows) + [""]
     for caption, name in pictures.items():
         lines += [f"**{caption}**", "", f"![{caption}]({name})", ""]
