@@ -47,6 +47,17 @@ class SurfaceTerm:
         variance = sum(c * s.noise() ** 2 for c, s in zip(counts, self.surfaces) if c)
         return float(np.sqrt(variance / max(counts.sum(), 1)))
 
+    def outward(self, y: np.ndarray) -> np.ndarray:
+        """(n, gdim) the outward normal of each row's closed target surface at its closest
+        point; zero rows for outlines and open surfaces."""
+        out = np.zeros_like(y)
+        for i, surface in enumerate(self.surfaces):
+            rows = np.flatnonzero(self.surface_of == i)
+            normal = surface.outward(y[rows]) if len(rows) else None
+            if normal is not None:
+                out[rows] = normal
+        return out
+
     def curvature_directions(self, y: np.ndarray) -> np.ndarray:
         out = np.zeros(y.shape + (y.shape[1],))
         for i, surface in enumerate(self.surfaces):
@@ -150,6 +161,16 @@ class Misfit:
             out[rows] = 0.0
             out[rows, 0] = np.sqrt(self.weights[rows])[:, None] * normal
         return out
+
+    def offset_residual(self, y: np.ndarray) -> np.ndarray | None:
+        """d r / d delta when every closed target surface moves out along its normal by
+        delta (an over-segmentation): -outward normal at its rows, zero elsewhere; None
+        when no row has a closed surface."""
+        out = np.zeros_like(y)
+        for rows, term in zip(self.slices, self.terms):
+            if isinstance(term, SurfaceTerm):
+                out[rows] = -term.outward(y[rows])
+        return out if out.any() else None
 
     def landmark_rows(self) -> np.ndarray:
         """Indices of the rows with a fixed target point (landmarks)."""

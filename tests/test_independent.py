@@ -277,3 +277,5 @@ def test_phantom_prostate_E_from_an_independent_target(truth_dir, tmp_path):
     assert abs(E - 50.0) / 50.0 < 0.05, E
     assert low < 50.0 < high, (low, high)
     assert abs(result["bases_fit"]["shift_if_enriched"]["prostate.E"]) < 0.02, result["bases_fit"]
+    offset = result["uncertainty"]["target_offset"]  # closed organ surfaces: a segmentation bias, first order
+    assert 0 < offset["offset"] < 0.01 and np.isfinite(offset["shift"]["prostate.E"]), offset

@@ -119,6 +119,42 @@ def test_patch_std_sees_noise_correlated_in_space():
     assert rows[1][2] > 1.15 * rows[1][1]
 
 
+def test_offset_shift_is_the_refit_of_a_linear_model():
+    """offset_shift predicts where the optimum goes when the residual changes by de (the
+    controls following, their prior included): exact for a linear model."""
+    from fenics_elasto.functional import Linearisation
+    from fenics_elasto.posterior import offset_shift
+
+    rng = np.random.default_rng(2)
+    m, p, alpha = 300, 5, 0.7
+    A_q, A_s = rng.standard_normal((m, p)), rng.standard_normal((m, 2))
+    A = np.hstack([A_q, A_s])
+    H = A.T @ A + np.diag(np.r_[np.full(p, alpha), 0.0, 0.0])
+    y, de = rng.standard_normal(m), 0.01 * rng.standard_normal(m)
+    fit = np.linalg.solve(H, A.T @ y)  # minimises |A x - y|^2 + alpha |x_q|^2 (residual: model - data)
+    moved = np.linalg.solve(H, A.T @ (y - de))  # the residual A x - y grows by de
+    lin = Linearisation(A @ fit - y, A_q, A_s, alpha, m)
+    assert np.allclose(offset_shift(lin, de), moved[p:] - fit[p:], rtol=1e-10, atol=1e-14)
+
+
+def test_outward_normals_of_a_closed_surface_whatever_its_triangle_order():
+    import pyvista as pv
+
+    from fenics_elasto.surface import Surface
+
+    sphere = pv.Sphere(radius=2.0, theta_resolution=24, phi_resolution=24).triangulate().clean()
+    triangles = sphere.faces.reshape(-1, 4)[:, 1:].copy()
+    rng = np.random.default_rng(0)
+    flip = rng.random(len(triangles)) < 0.5
+    triangles[flip] = triangles[flip][:, ::-1]
+    closed = Surface(np.asarray(sphere.points), triangles)
+    x = rng.normal(size=(400, 3))
+    x *= (rng.uniform(0.5, 3.5, 400) / np.linalg.norm(x, axis=1))[:, None]  # inside and outside
+    normal = closed.outward(x)
+    assert np.all(np.einsum("ij,ij->i", normal, closed.closest(x)) > 0.9 * 2.0)  # away from the centre
+    assert Surface(np.asarray(sphere.points), triangles[: len(triangles) // 2]).outward(x) is None  # open
+
+
 def test_undetermined_constant_is_flagged():
     """A constant whose effect the controls can mimic exactly (A_s in span A_q): the
     Schur complement vanishes and the interval is infinite, wider than any bounds."""
