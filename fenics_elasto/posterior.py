@@ -23,14 +23,14 @@ That counts every residual row as independent noise. A residual that is structur
 space -- a voxelised or re-meshed target's staircase, a source mesh too coarse for the
 target's shape -- moves the answer far more than noise of its size: on the real prostate
 a 1 mm voxel target (residual 0.05 mm) put E +5.9 % off with a noise std of 1.9 %, and
-smoothing that target (moving it by ~0.02 mm) moved E another +7 %. So the residual's
-own spatial patches are asked too (``patch_covariance``: a cluster-robust sandwich) and
-where they disagree more than noise would, the std and the interval are widened to
-theirs (measured there: 2.6x, the interval then holding the truth). What remains
-unstated is a bias the residual cannot show -- bases that cannot represent the wall
-motion (reduction.missing_wall_motion warns about it), a target offset as a whole (see
-the README). Identifiability: a constant whose 95 % interval is wider than its bounds is
-not determined by the data.
+smoothing that target (its rms distance to the truth 0.05 -> 0.025 mm) moved E
+another +7 %. So the residual's own spatial patches are asked too (``patch_covariance``:
+a cluster-robust sandwich) and where they disagree more than noise would, the std and
+the interval are widened to theirs (measured there: 2.6x, the interval then holding the
+truth). What remains unstated is a bias the residual cannot show: bases that cannot
+represent the wall motion (reduction.missing_wall_motion warns about it), a target
+offset as a whole (reported by ``target_offset``, not added). Identifiability: a
+constant whose 95 % interval is wider than its bounds is not determined by the data.
 """
 
 from __future__ import annotations
@@ -180,7 +180,8 @@ def target_offset(misfit, lin: Linearisation, evaluation) -> tuple[float, np.nda
     closed target surface is moved out along its normal by delta -- a segmentation that
     is too big all round by a tenth of its own resolution (OFFSET_SHARE of the mean
     edge). The residual cannot show such a bias; with organ surfaces only E rests on
-    motions of micrometres (the real prostate: 4-7 um out moved E by -0.9 %). None
+    motions of micrometres (the real prostate: 4-7 um out moved E by -0.82 %, this
+predicts -0.85 %). None
     without a closed target surface."""
     dr = misfit.offset_residual(evaluation.y) if misfit is not None else None
     if dr is None:
