@@ -362,7 +362,9 @@ def describe_offset(post: Posterior) -> list[str]:
         return []
     delta, ds = post.offset
     moved = [f"{label} by {100 * np.expm1(d):+.2g} %" if is_E else f"{label} by {d:+.2g}"
-             for label, d, is_E in zip(post.labels, ds, post.is_E)]
+             for label, d, is_E in zip(post.labels, ds, post.is_E) if np.isfinite(d)]
+    if not moved:
+        return []
     return [f"a target {delta:.3g} bigger all round (a tenth of its edge: a segmentation bias no residual shows) "
             f"would move {', '.join(moved)} (first order)"]
 

@@ -96,7 +96,7 @@ class Posterior:
         residual that is structured in space (patches of the target disagree) moves the
         answer more than independent noise of its size would."""
         base = self.noise_std_s
-        ok = np.isfinite(base) & (base > 0)
+        ok = np.isfinite(base) & (base > 0) & np.isfinite(self.patch_std_s)
         return np.where(ok, np.maximum(1.0, self.patch_std_s / np.where(ok, base, 1.0)), 1.0)
 
     def interval(self, level: float = 1.959964) -> np.ndarray:
@@ -139,7 +139,8 @@ class Posterior:
         if self.offset is not None:
             delta, ds = self.offset
             shift = np.where(self.is_E, np.expm1(ds), ds)
-            out["target_offset"] = {"offset": delta, "shift": {label: float(v) for label, v in zip(self.labels, shift)}}
+            out["target_offset"] = {"offset": delta, "shift": {label: float(v) if np.isfinite(v) else None
+                                                                for label, v in zip(self.labels, shift)}}
         if len(self.labels) > 1:
             out["correlation"] = self.correlation().tolist()
         return out
@@ -232,7 +233,9 @@ def patch_covariance(lin: Linearisation, positions: np.ndarray) -> np.ndarray:
     patch = spatial_patches(positions, max(2, round(np.sqrt(len(positions)))))[np.arange(len(lin.residual)) // gdim]
     count = int(patch.max()) + 1
     pulls = np.stack([np.bincount(patch, B[:, k] * lin.residual, minlength=count) for k in range(B.shape[1])], axis=1)
-    return S_inv @ (pulls.T @ pulls) @ S_inv * count / (count - 1)
+    known = np.where(np.isfinite(S_inv), S_inv, 0.0)  # undetermined directions: inf below, not inf * 0
+    out = known @ (pulls.T @ pulls) @ known * count / (count - 1)
+    return np.where(np.isfinite(S_inv), out, np.inf)
 
 
 def _profiled(lin: Linearisation) -> tuple[np.ndarray, np.ndarray]:
@@ -249,7 +252,8 @@ def offset_shift(lin: Linearisation, de: np.ndarray) -> np.ndarray:
     """ds (first order) when the weighted residual changes by ``de`` and the controls
     follow: -S^-1 B^T de."""
     B, S_inv = _profiled(lin)
-    return -S_inv @ (B.T @ de)
+    ds = -np.where(np.isfinite(S_inv), S_inv, 0.0) @ (B.T @ de)
+    return np.where(np.isfinite(np.diag(S_inv)), ds, np.nan)  # an undetermined constant: no first order
 
 
 def spatial_patches(points: np.ndarray, count: int) -> np.ndarray:

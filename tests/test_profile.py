@@ -171,6 +171,29 @@ def test_undetermined_constant_is_flagged():
     assert "wider than its bounds" in laplace(noisy, ["tissue.nu"], [0.3], [False]).undetermined([(0.0, 0.499)])["tissue.nu"]
 
 
+
+def test_an_undetermined_constant_leaves_the_others_patch_std_and_offset_finite():
+    """One constant the controls mimic, one they cannot: the patch std is infinite
+    exactly where the Laplace std is (the inverse Schur complement's inf), never
+    inf * 0 = nan, the widening stays 1 there and the offset shift is absent."""
+    from fenics_elasto.functional import Linearisation
+    from fenics_elasto.posterior import offset_shift, patch_covariance
+
+    rng = np.random.default_rng(1)
+    m = 60
+    A_q = rng.standard_normal((m, 4))
+    A_s = np.c_[A_q @ rng.standard_normal(4), rng.standard_normal(m)]
+    lin = Linearisation(0.01 * rng.standard_normal(m), A_q, A_s, 0.0, m)
+    positions = rng.random((m, 1))
+    post = laplace(lin, ["tissue.nu", "prostate.nu"], [0.3, 0.4], [False, False])
+    post.patch_covariance = patch_covariance(lin, positions)
+    shift = offset_shift(lin, rng.standard_normal(m))
+    assert not np.isnan(post.patch_covariance).any() and np.isinf(post.patch_std_s[0])
+    assert np.array_equal(np.isinf(post.patch_std_s), np.isinf(post.laplace_std_s))
+    assert np.array_equal(np.isnan(shift), np.isinf(post.laplace_std_s))
+    assert np.all(post.widening == 1.0)
+
+
 def test_surface_roughness_is_the_noise_added_to_it():
     """Surface.roughness, from the surface alone: Gaussian noise of known std on a sphere
     and on a circle comes back within 5 %; a clean polygon with sharp corners (every
