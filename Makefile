@@ -37,7 +37,7 @@ demo-prostate-quick: $(STAMP)
 	$(PY) demos/real_prostate.py --quick --out out/prostate-quick
 
 test: $(STAMP)
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q --durations=15
 
 test-fast: $(STAMP)
 	$(PY) -m pytest -q -m "not slow"
