@@ -32,7 +32,7 @@ from fenics_elasto.interrupts import Interrupted
 from fenics_elasto.matching import match_surface
 from fenics_elasto.misfit import SurfaceTerm
 from fenics_elasto.objective import Evaluation, InverseProblem
-from fenics_elasto.posterior import Posterior, posterior_at, profile_interval, untrusted_sides
+from fenics_elasto.posterior import Posterior, posterior_at, profile_interval, target_offset, untrusted_sides
 from fenics_elasto.reduction import bases_fit, missing_wall_motion, reach_warning
 from fenics_elasto.surrogate import MaterialSurrogate
 
@@ -323,6 +323,8 @@ def estimate(problem: InverseProblem, options: Options | None = None, basis: np.
         log.info("interrupted: writing the best result so far")
     theta, best, forces = estimator.final()
     post = estimator.posterior(best)
+    if post is not None:  # the final answer's only: the set-up check's posterior has no use for it
+        post.offset = target_offset(problem.misfit, estimator.profile.linearisation(best), best.evaluation)
     if post is not None and not interrupted:
         estimator.profile_likelihood_interval(post)
     fit = fit_of_bases(estimator, theta, best)

@@ -128,11 +128,15 @@ class Misfit:
             out[rows] = term.curvature_directions(y[rows])
         return np.sqrt(self.weights)[:, None, None] * out
 
+    @property
+    def surfaces(self) -> list[Surface]:
+        """The target surfaces of every surface term."""
+        return [s for t in self.terms if isinstance(t, SurfaceTerm) for s in t.surfaces]
+
     def smoothing(self) -> dict | None:
         """The rough targets smoothed before matching: their noise before and after (the
         largest over the surfaces), or None when none was."""
-        smoothed = [s for t in self.terms if isinstance(t, SurfaceTerm) for s in t.surfaces
-                    if s.smoothed_from is not None]
+        smoothed = [s for s in self.surfaces if s.smoothed_from is not None]
         if not smoothed:
             return None
         return {"surfaces": len(smoothed), "noise_before": max(s.smoothed_from for s in smoothed),

@@ -169,7 +169,6 @@ def posterior_at(profile, result, noise: float | None = None, floor: float = 0.0
     params = profile.params
     post = laplace(lin, params.labels, s, params.is_E, noise, floor)
     post.patch_covariance = patch_covariance(lin, result.evaluation.y)
-    post.offset = target_offset(profile.problem.misfit, lin, result.evaluation)
     return post
 
 
@@ -187,8 +186,7 @@ predicts -0.85 %). None
     dr = misfit.offset_residual(evaluation.y) if misfit is not None else None
     if dr is None:
         return None
-    edges = [s.mean_edge for t in misfit.terms if hasattr(t, "surfaces") for s in t.surfaces]
-    delta = OFFSET_SHARE * float(np.mean(edges))
+    delta = OFFSET_SHARE * float(np.mean([s.mean_edge for s in misfit.surfaces]))
     rows = misfit.statistical_rows(evaluation.y, evaluation.residual)
     return delta, delta * offset_shift(lin, np.einsum("lkd,ld->lk", rows, dr).ravel())
 

@@ -63,7 +63,7 @@ class Surface:
         self._roughness = None
         self.smoothed_from = None  # the roughness before smoothed() made this surface
         self.noise_gain = 1.0  # smoothed(): the share of white noise its filter lets through
-        self._outward = None  # per face: the unit normal out of the enclosed volume (outward)
+        self._outward = None  # outward(): per face the unit normal out of the enclosed volume, or False (open, 2D)
 
         corners = self.points[self.cells]
         if self.dim == 2:
@@ -193,16 +193,21 @@ class Surface:
         """(n, 3) the unit normal of the face closest to each x, pointing out of the
         closed surface whatever order its triangles came in; None for a 2D outline or an
         open surface, which enclose nothing."""
-        if self.dim != 3 or self._rings()[2].any():
+        if self._outward is None:  # once: False if it encloses nothing, else per face (see _outward_normals)
+            self._outward = self.dim == 3 and not self._rings()[2].any() and self._outward_normals()
+        if self._outward is False:
             return None
-        if self._outward is None:  # once: faces ordered alike per piece (BFS), each piece's volume > 0
-            faces, piece = igl.bfs_orient(self.cells)
-            p0, p1, p2 = (self.points[faces[:, i]] for i in range(3))
-            volume = np.bincount(piece, np.einsum("ij,ij->i", p0, np.cross(p1, p2)))
-            turned = np.cross(p1 - p0, p2 - p0) * np.sign(volume)[piece, None]
-            same = np.einsum("ij,ij->i", turned, self._area_normals) >= 0
-            self._outward = np.where(same[:, None], self.normals, -self.normals)
         return self._outward[self._query(x)[0]]
+
+    def _outward_normals(self) -> np.ndarray:
+        """Per face of this closed surface, the unit normal out of it: faces ordered alike
+        per piece (BFS), each piece's signed volume positive."""
+        faces, piece = igl.bfs_orient(self.cells)
+        p0, p1, p2 = (self.points[faces[:, i]] for i in range(3))
+        volume = np.bincount(piece, np.einsum("ij,ij->i", p0, np.cross(p1, p2)))
+        turned = np.cross(p1 - p0, p2 - p0) * np.sign(volume)[piece, None]
+        same = np.einsum("ij,ij->i", turned, self._area_normals) >= 0
+        return np.where(same[:, None], self.normals, -self.normals)
 
     def curvature_directions(self, x: np.ndarray) -> np.ndarray:
         """(n, dim, dim) rows spanning the Hessian of 1/2 d(x, S)^2 (zero rows pad).
