@@ -32,7 +32,8 @@ from fenics_elasto.interrupts import Interrupted
 from fenics_elasto.matching import match_surface
 from fenics_elasto.misfit import SurfaceTerm
 from fenics_elasto.objective import Evaluation, InverseProblem
-from fenics_elasto.posterior import Posterior, posterior_at, profile_interval, target_offset, untrusted_sides
+from fenics_elasto.posterior import (CHI2_95, JITTER_NOISE, Posterior, jitter_noise, posterior_at, profile_interval,
+                                    target_offset, untrusted_sides)
 from fenics_elasto.reduction import bases_fit, missing_wall_motion, reach_warning
 from fenics_elasto.surrogate import MaterialSurrogate
 
@@ -239,18 +240,38 @@ class Estimator:
         """The profile-likelihood 95 % interval of a single estimated constant, in place
         of the Laplace one: on the surrogate (dense algebra) with bases, by full solves on
         small meshes (PROFILE_DOFS), not at all on big ones without bases (each value a
-        factorization)."""
+        factorization). Where Phi* is jagged on the surrogate, the inner fit at the answer
+        is re-run from the other fits met on the way: minima that far apart in Phi* raise
+        the interval's threshold by as much (posterior.jitter_noise)."""
         if len(self.params) != 1 or (self.surrogate is None and self.problem.model.num_dofs > PROFILE_DOFS):
             return
+        fits = []  # the surrogate's inner optima met along the way: other starts for the jitter
         if self.surrogate is not None:
-            value = lambda s: self.surrogate.value_and_gradient(np.atleast_1d(s))[0]  # noqa: E731
+            def value(s):
+                fits.append(self.surrogate.fit(np.atleast_1d(s)))
+                return fits[-1].phi + fits[-1].prior
         else:
             value = lambda s: self.profile.solve(self.params.to_theta(np.atleast_1d(s)), "ci").value  # noqa: E731
-        s_hat, std = float(post.s[0]), float(post.laplace_std_s[0])
-        ends, jagged = untrusted_sides(profile_interval(value, s_hat, std, post.noise_std, self.params.s_bounds()[0]),
-                                       s_hat, std)
+        s_hat, std, bounds = float(post.s[0]), float(post.laplace_std_s[0]), self.params.s_bounds()[0]
+        ends, jagged = untrusted_sides(profile_interval(value, s_hat, std, post.noise_std, bounds), s_hat, std)
+        label = self.params.labels[0]
+        if jagged and fits:
+            start = time.perf_counter()
+            post.inner_spread = self.surrogate.inner_spread(np.atleast_1d(s_hat), [f.q for f in fits[1:]])
+            log.info(f"inner fits at the answer from {len(fits)} starts end up to {post.inner_spread:.3g} apart in "
+                     f"Phi* ({time.perf_counter() - start:.1f} s)")
+            noise = jitter_noise(post.noise_std, post.inner_spread)
+            if noise > JITTER_NOISE * post.noise_std:
+                reach = 1.959964 * std
+                low, high = profile_interval(value, s_hat, std, noise, bounds)
+                ends = (min(low, s_hat - reach), max(high, s_hat + reach))
+                self.warnings.append(
+                    f"{label}: the inner fit ends in minima up to {post.inner_spread:.3g} apart in Phi* from different "
+                    f"starts ({post.inner_spread / (0.5 * CHI2_95 * post.noise_std**2):.0f}x what the noise moves in a "
+                    "95 % interval: a target rougher than its sampling): the interval allows for them")
+                jagged = False
         if jagged:
-            self.warnings.append(f"{self.params.labels[0]}: Phi* is not smooth beside the answer (a rough target, or "
+            self.warnings.append(f"{label}: Phi* is not smooth beside the answer (a rough target, or "
                                  "an inner fit with several minima): the interval is the Laplace one on that side")
         post.profile_s = np.array([ends])
 

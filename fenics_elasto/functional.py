@@ -146,6 +146,18 @@ class SurrogateProfile:
         self.fit_inner: GaussNewton = profile.inner
         self.evaluations = 0
 
+    def fit(self, s, start: np.ndarray | None = None):
+        """The inner fit (a LinearFit) at s on the surrogate, from q0 or ``start``."""
+        J, _ = self.profile.surrogate.response(self.params.to_theta(s))
+        return self.fit_inner.fit(J, start)
+
+    def inner_spread(self, s, starts) -> float:
+        """How far apart in Phi* the inner fits at s end from q0 and from each of
+        ``starts``: 0 for a convex inner problem; on a rough target the fit's local
+        minima, which a cold start picks among as theta moves -- Phi*'s jaggedness."""
+        values = [fit.phi + fit.prior for fit in (self.fit(s, start) for start in [None, *starts])]
+        return float(max(values) - min(values))
+
     def value_and_gradient(self, s) -> tuple[float, np.ndarray]:
         theta = self.params.to_theta(s)
         J, dJ = self.profile.surrogate.response(theta)

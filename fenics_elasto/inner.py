@@ -63,8 +63,10 @@ class GaussNewton:
         self.maxiter = maxiter
         self.tol = tol
 
-    def fit(self, J: np.ndarray) -> LinearFit:
-        """Minimise Phi(q) + alpha/2 |q - q0|^2 for one response J (n, gdim, r), from q0."""
+    def fit(self, J: np.ndarray, start: np.ndarray | None = None) -> LinearFit:
+        """Minimise Phi(q) + alpha/2 |q - q0|^2 for one response J (n, gdim, r), from q0
+        (or from ``start``: the same objective, another path -- on a rough target it may
+        end in another local minimum)."""
         n, gdim, r = J.shape
         flat = J.reshape(n * gdim, r)
         misfit = self.misfit
@@ -77,7 +79,7 @@ class GaussNewton:
         if self.alpha is None:
             A = self._curvature_rows(J, self.points + (flat @ self.q0).reshape(n, gdim))
             self.alpha = self.anchor * float(np.mean(np.sum(A**2, axis=0)))
-        q = self.q0.copy()
+        q = (self.q0 if start is None else start).copy()
         y, residual, phi, prior = evaluate(q)
         damping, nit, converged = 1e-3, 0, False
         for nit in range(1, self.maxiter + 1):  # noqa: B007 (nit is reported after the loop)

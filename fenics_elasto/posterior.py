@@ -61,6 +61,7 @@ class Posterior:
     profile_s: np.ndarray | None = None  # (n, 2) the profile-likelihood 95 % interval in s, where computed
     patch_covariance: np.ndarray | None = None  # of s, from how the residual's patches pull (patch_covariance)
     offset: tuple | None = None  # (delta, ds): a target offset out by delta and how far s moves (target_offset)
+    inner_spread: float | None = None  # how far apart the inner fit's minima at the answer are, where measured
 
     @property
     def method(self) -> str:
@@ -141,6 +142,8 @@ class Posterior:
             shift = np.where(self.is_E, np.expm1(ds), ds)
             out["target_offset"] = {"offset": delta, "shift": {label: float(v) if np.isfinite(v) else None
                                                                 for label, v in zip(self.labels, shift)}}
+        if self.inner_spread is not None:
+            out["inner_spread"] = self.inner_spread
         if len(self.labels) > 1:
             out["correlation"] = self.correlation().tolist()
         return out
@@ -304,6 +307,20 @@ def profile_interval(value, s_hat: float, std: float, noise: float, bounds, trie
                 t = t0 + (t1 - t0) * (-g0) / (g1 - g0)  # within the bracket
         ends.append(s_hat + direction * t)
     return ends[0], ends[1]
+
+
+JITTER_NOISE = 1.05  # an inner spread that raises the profile's threshold less than this is not reported
+
+
+def jitter_noise(noise: float, spread: float) -> float:
+    """The noise level whose 95 % profile threshold, CHI2_95 noise^2 / 2, also clears an
+    inner spread: Phi* computed from one start lies anywhere up to ``spread`` above the
+    inner problem's best minimum, so a value of the constant is excluded only where
+    Phi* rises above its minimum by the noise's threshold plus that spread. On the
+    phantom at 2 % noise (0.65 mm on organs sampled every 1.5 mm) the inner minima were
+    ~0.01 apart in Phi* against a threshold of 0.0007, and three draws gave E = 30, 63,
+    65 (truth 50) with noise-only intervals 8 units wide."""
+    return float(np.sqrt(noise**2 + 2.0 * spread / CHI2_95))
 
 
 JAGGED_SHARE = 0.5  # a profile-interval side under this share of the Laplace one is not trusted

@@ -158,7 +158,7 @@ def gather_entities(u: dolfinx.fem.Function, dim: int, entities: np.ndarray, pie
     tdim, gdim = mesh.topology.dim, mesh.geometry.dim
     mesh.topology.create_connectivity(dim, tdim)
     owned = entities[entities < mesh.topology.index_map(dim).size_local].astype(np.int32)
-    width = math.comb(dim + mesh.geometry.cmap.degree, dim)  # geometry nodes of a simplex of dimension dim
+    width = math.comb(dim + mesh.geometry.cmaps[0].degree, dim)  # geometry nodes of a simplex of dimension dim
     nodes = dolfinx.mesh.entities_to_geometry(mesh, dim, owned).reshape(len(owned), width)  # a rank may own none
     blocks = node_blocks(u.function_space)
     curved = mesh.comm.allreduce(bool(dim < tdim and nodes.shape[1] > dim + 1 and (blocks[nodes] >= 0).all()),

@@ -330,3 +330,30 @@ def test_a_jagged_phi_does_not_shrink_the_interval():
     skewed = lambda s: 2.0 + 0.5 * noise**2 * (np.expm1(s - s_hat) / std) ** 2  # noqa: E731
     ends = profile_interval(skewed, s_hat, std, noise, (-5.0, 5.0))
     assert untrusted_sides(ends, s_hat, std) == (ends, False)
+
+
+def test_an_inner_spread_widens_the_profile_interval_to_the_trend_minimum():
+    """Phi* computed from one start lies up to the inner spread J above the inner
+    problem's best minimum: here the trend plus J everywhere but at the answer found,
+    whose fit happened to land in the best minimum -- a narrow dip, as on the noisy
+    phantom. The trend's own minimum s0 may then lie anywhere the trend is within J of
+    its value at the answer. With the threshold raised by J (jitter_noise) the interval
+    holds s0; the noise's threshold, with the Laplace fallback for the dip's too-short
+    sides (untrusted_sides), does not."""
+    from fenics_elasto.posterior import CHI2_95, jitter_noise, profile_interval, untrusted_sides
+
+    noise, std, s_hat, J = 0.1, 0.3, 1.0, 0.2
+    noisy = jitter_noise(noise, J)
+    assert 0.5 * CHI2_95 * (noisy**2 - noise**2) == pytest.approx(J)
+    assert jitter_noise(noise, 0.0) == noise
+    curvature = 0.5 * noise**2 / std**2
+    for offset in (-1.0, -0.5, 0.5, 1.0):  # trend(s_hat) - trend(s0) = |offset| J
+        s0 = s_hat - np.sign(offset) * np.sqrt(abs(offset) * J / curvature)
+
+        def computed(s, s0=s0):
+            return 2.0 + curvature * (s - s0) ** 2 + (0.0 if s == s_hat else J)
+
+        low, high = profile_interval(computed, s_hat, std, noisy, (-5.0, 5.0))
+        assert low <= s0 <= high, (offset, s0, low, high)
+        (low, high), jagged = untrusted_sides(profile_interval(computed, s_hat, std, noise, (-5.0, 5.0)), s_hat, std)
+        assert jagged and not low <= s0 <= high, (offset, s0, low, high)

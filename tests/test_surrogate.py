@@ -129,3 +129,32 @@ def test_sensitivities_are_derivatives_of_the_mode_fields(inclusion):
         print(f"E = {E:g}: one snapshot {relative_error(plain.response(probe)[0], truth):.2e}, "
               f"with its sensitivities {with_sensitivities:.2e}")
         assert with_sensitivities < 0.1 * relative_error(plain.response(probe)[0], truth)
+
+
+@pytest.mark.slow
+def test_inner_spread_is_nil_on_a_clean_target_and_not_on_a_rough_one(tmp_path):
+    """Letter A through random-plus-answer bases: the surrogate's inner fits at the
+    answer, started from q0 and from the fits at neighbouring nu, end in one minimum on a
+    clean target (a spread of round-off) and in several on an outline with noise of 0.3
+    edge lengths (measured 0.0196, 13 % of Phi*) -- what estimate's interval allows for
+    when Phi* is jagged."""
+    from fenics_elasto.estimate import Estimator
+    from fenics_elasto.surface import read_surface
+    from independent import noisy_copy
+
+    source, target = letter_case(tmp_path, 0.25, 0.35)
+    problem = InverseProblem(load_scene(source, [f"target.surface='{target}'"]))
+    rng = np.random.default_rng(1)
+    W = np.linalg.qr(np.c_[problem.forward.on_loaded(estimate(problem).u),
+                           rng.standard_normal((problem.force_dofs, 5))])[0]
+    rough = noisy_copy(target, tmp_path / "rough.vtp", 0.3 * read_surface(target, 2).mean_edge, np.random.default_rng(3))
+    spreads = []
+    for surface in (target, rough):
+        scene = load_scene(source, [f"target.surface='{surface}'"])
+        estimator = Estimator(InverseProblem(scene), Options.from_scene(scene), W)
+        estimator.run()
+        s = estimator.params.to_s(estimator.profile.best_theta())
+        starts = [estimator.surrogate.fit(s + ds).q for ds in (-0.3, -0.1, 0.1, 0.3)]
+        spreads.append(estimator.surrogate.inner_spread(s, starts) / estimator.profile.best().value)
+    print("inner spread / Phi*: clean", spreads[0], "rough", spreads[1])
+    assert spreads[0] < 1e-8 and spreads[1] > 0.01, spreads
