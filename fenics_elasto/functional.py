@@ -151,12 +151,14 @@ class SurrogateProfile:
         J, _ = self.profile.surrogate.response(self.params.to_theta(s))
         return self.fit_inner.fit(J, start)
 
-    def inner_spread(self, s, starts) -> float:
+    def inner_spread(self, s, starts) -> tuple[float, np.ndarray]:
         """How far apart in Phi* the inner fits at s end from q0 and from each of
-        ``starts``: 0 for a convex inner problem; on a rough target the fit's local
-        minima, which a cold start picks among as theta moves -- Phi*'s jaggedness."""
-        values = [fit.phi + fit.prior for fit in (self.fit(s, start) for start in [None, *starts])]
-        return float(max(values) - min(values))
+        ``starts`` (0 for a convex inner problem; on a rough target the fit's local minima,
+        which a cold start picks among as theta moves: Phi*'s jaggedness), and the
+        controls of the lowest."""
+        fits = [self.fit(s, start) for start in [None, *starts]]
+        values = [fit.phi + fit.prior for fit in fits]
+        return float(max(values) - min(values)), fits[int(np.argmin(values))].q
 
     def value_and_gradient(self, s) -> tuple[float, np.ndarray]:
         theta = self.params.to_theta(s)

@@ -317,9 +317,9 @@ def jitter_noise(noise: float, spread: float) -> float:
     inner spread: Phi* computed from one start lies anywhere up to ``spread`` above the
     inner problem's best minimum, so a value of the constant is excluded only where
     Phi* rises above its minimum by the noise's threshold plus that spread. On the
-    phantom at 2 % noise (0.65 mm on organs sampled every 1.5 mm) the inner minima were
-    ~0.01 apart in Phi* against a threshold of 0.0007, and three draws gave E = 30, 63,
-    65 (truth 50) with noise-only intervals 8 units wide."""
+    phantom at 2 % noise (0.65 mm on organs sampled every 0.3 mm) the inner minima were
+    0.01-0.03 apart in Phi* against a threshold of 0.0007, and three draws gave E = 30,
+    63, 65 (truth 50) with noise-only intervals ~10 units wide."""
     return float(np.sqrt(noise**2 + 2.0 * spread / CHI2_95))
 
 

@@ -155,6 +155,6 @@ def test_inner_spread_is_nil_on_a_clean_target_and_not_on_a_rough_one(tmp_path):
         estimator.run()
         s = estimator.params.to_s(estimator.profile.best_theta())
         starts = [estimator.surrogate.fit(s + ds).q for ds in (-0.3, -0.1, 0.1, 0.3)]
-        spreads.append(estimator.surrogate.inner_spread(s, starts) / estimator.profile.best().value)
+        spreads.append(estimator.surrogate.inner_spread(s, starts)[0] / estimator.profile.best().value)
     print("inner spread / Phi*: clean", spreads[0], "rough", spreads[1])
     assert spreads[0] < 1e-8 and spreads[1] > 0.01, spreads
