@@ -310,6 +310,7 @@ def profile_interval(value, s_hat: float, std: float, noise: float, bounds, trie
 
 
 JITTER_NOISE = 1.05  # an inner spread that raises the profile's threshold less than this is not reported
+JITTER_STARTS = 6  # other starts for the inner spread, spread over the profile's evaluations
 
 
 def jitter_noise(noise: float, spread: float) -> float:
