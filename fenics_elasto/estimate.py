@@ -264,12 +264,13 @@ class Estimator:
 
     def _allow_for_inner_minima(self, post: Posterior, fits, ends) -> tuple[tuple[float, float], bool]:
         """A jagged Phi* on the surrogate: re-fit at the answer from fits met on the way,
-        JITTER_STARTS of them spread from the lowest s to the highest (the nearest four
-        alone all fell in one basin on the phantom at 2 % noise: spread 0.0004 where all
-        16 found 0.03; each start is a whole inner fit); if their minima lie far apart, follow the lowest one's branch in s
-        (a fit warm-started from it: continuous in s, unlike cold fits that hop between
-        minima) to where it rises above the noise's threshold plus that spread. Returns
-        the interval's ends and whether Phi* is still untreated as jagged."""
+        JITTER_STARTS of them spread from the lowest s to the highest (each start is a
+        whole inner fit; the nearest four alone all fell in one basin on the phantom at
+        2 % noise: spread 0.0004 where all 16 found 0.03). If their minima lie far apart,
+        follow the lowest one's branch in s (a fit warm-started from it: continuous in s,
+        unlike cold fits that hop between minima) to where it rises above the noise's
+        threshold plus that spread. Returns the interval's ends and whether Phi* is
+        still to be reported as jagged (a spread too small to matter)."""
         s_hat, std, bounds = float(post.s[0]), float(post.laplace_std_s[0]), self.params.s_bounds()[0]
         start = time.perf_counter()
         met = sorted(fits[1:], key=lambda item: item[0])

@@ -309,7 +309,7 @@ def profile_interval(value, s_hat: float, std: float, noise: float, bounds, trie
     return ends[0], ends[1]
 
 
-JITTER_NOISE = 1.05  # an inner spread that raises the profile's threshold less than this is not reported
+JITTER_NOISE = 1.05  # an inner spread raising the noise level of the threshold less than this leaves the interval
 JITTER_STARTS = 6  # other starts for the inner spread, spread over the profile's evaluations
 
 
