@@ -253,7 +253,7 @@ class Estimator:
         else:
             value = lambda s: self.profile.solve(self.params.to_theta(np.atleast_1d(s)), "ci").value  # noqa: E731
         s_hat, std, bounds = float(post.s[0]), float(post.laplace_std_s[0]), self.params.s_bounds()[0]
-        ends, jagged = untrusted_sides(profile_interval(value, s_hat, std, post.noise_std, bounds), s_hat, std)
+        ends, jagged = untrusted_sides(profile_interval(value, s_hat, std, post.noise_std, bounds), s_hat, std, bounds)
         label = self.params.labels[0]
         if jagged and fits:
             ends, jagged = self._allow_for_inner_minima(post, fits, ends)
@@ -296,7 +296,7 @@ class Estimator:
             f"{self.params.labels[0]}: the inner fit ends in minima up to {post.inner_spread:.3g} apart in Phi* from "
             f"different starts ({post.inner_spread / (0.5 * CHI2_95 * post.noise_std**2):.2g}x what the noise moves in "
             "a 95 % interval: a target rougher than its sampling): the interval allows for them")
-        return (min(low, s_hat - reach), max(high, s_hat + reach)), False
+        return (max(min(low, s_hat - reach), bounds[0]), min(max(high, s_hat + reach), bounds[1])), False
 
     def check_identifiable(self) -> None:
         """After the scan: a constant whose 95 % interval (at the best full solve) is wider

@@ -326,10 +326,16 @@ def test_a_jagged_phi_does_not_shrink_the_interval():
     jagged = lambda s: 2.0 + (0.0 if s == s_hat else 1.0) + 0.5 * noise**2 * ((s - s_hat) / std) ** 2  # noqa: E731
     ends = profile_interval(jagged, s_hat, std, noise, (-5.0, 5.0))
     assert ends[1] - ends[0] < 0.01 * reach  # what the profile alone would report
-    assert untrusted_sides(ends, s_hat, std) == ((s_hat - reach, s_hat + reach), True)
+    assert untrusted_sides(ends, s_hat, std, (-5.0, 5.0)) == ((s_hat - reach, s_hat + reach), True)
+    near = (s_hat - 0.2 * reach, 5.0)  # a bound inside the Laplace reach: the fallback stays within it
+    assert untrusted_sides(profile_interval(jagged, s_hat, std, noise, near), s_hat, std, near) == (
+        (near[0], s_hat + reach), True)
+    flat_below = lambda s: 2.0 + (s > s_hat) * 0.5 * noise**2 * ((s - s_hat) / std) ** 2  # noqa: E731
+    ends = profile_interval(flat_below, s_hat, std, noise, near)  # open down to the near bound
+    assert ends[0] == near[0] and untrusted_sides(ends, s_hat, std, near) == (ends, False)  # not jagged
     skewed = lambda s: 2.0 + 0.5 * noise**2 * (np.expm1(s - s_hat) / std) ** 2  # noqa: E731
     ends = profile_interval(skewed, s_hat, std, noise, (-5.0, 5.0))
-    assert untrusted_sides(ends, s_hat, std) == (ends, False)
+    assert untrusted_sides(ends, s_hat, std, (-5.0, 5.0)) == (ends, False)
 
 
 def test_an_inner_spread_widens_the_profile_interval_to_the_trend_minimum():
@@ -355,5 +361,6 @@ def test_an_inner_spread_widens_the_profile_interval_to_the_trend_minimum():
 
         low, high = profile_interval(computed, s_hat, std, noisy, (-5.0, 5.0))
         assert low <= s0 <= high, (offset, s0, low, high)
-        (low, high), jagged = untrusted_sides(profile_interval(computed, s_hat, std, noise, (-5.0, 5.0)), s_hat, std)
+        bounds = (-5.0, 5.0)
+        (low, high), jagged = untrusted_sides(profile_interval(computed, s_hat, std, noise, bounds), s_hat, std, bounds)
         assert jagged and not low <= s0 <= high, (offset, s0, low, high)
