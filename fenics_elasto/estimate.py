@@ -249,16 +249,15 @@ class Estimator:
         if self.surrogate is not None:
             def value(s):
                 fits.append((s, self.surrogate.fit(np.atleast_1d(s))))
-                return fits[-1][1].phi + fits[-1][1].prior
+                return fits[-1][1].value
         else:
             value = lambda s: self.profile.solve(self.params.to_theta(np.atleast_1d(s)), "ci").value  # noqa: E731
         s_hat, std, bounds = float(post.s[0]), float(post.laplace_std_s[0]), self.params.s_bounds()[0]
         ends, jagged = untrusted_sides(profile_interval(value, s_hat, std, post.noise_std, bounds), s_hat, std, bounds)
-        label = self.params.labels[0]
         if jagged and fits:
             ends, jagged = self._allow_for_inner_minima(post, fits, ends)
         if jagged:
-            self.warnings.append(f"{label}: Phi* is not smooth beside the answer (a rough target, or "
+            self.warnings.append(f"{self.params.labels[0]}: Phi* is not smooth beside the answer (a rough target, or "
                                  "an inner fit with several minima): the interval is the Laplace one on that side")
         post.profile_s = np.array([ends])
 
@@ -273,10 +272,11 @@ class Estimator:
         still to be reported as jagged (a spread too small to matter)."""
         s_hat, std, bounds = float(post.s[0]), float(post.laplace_std_s[0]), self.params.s_bounds()[0]
         start = time.perf_counter()
-        met = sorted(fits[1:], key=lambda item: item[0])
+        met = sorted(((s, fit) for s, fit in fits if s != s_hat), key=lambda item: item[0])
         pick = np.unique(np.linspace(0, len(met) - 1, min(JITTER_STARTS, len(met))).round().astype(int))
         starts = [met[i][1].q for i in pick]
-        post.inner_spread, q_best = self.surrogate.inner_spread(np.atleast_1d(s_hat), starts)
+        cold = next((fit for s, fit in fits if s == s_hat), None)  # the profile interval's own first fit
+        post.inner_spread, q_best = self.surrogate.inner_spread(np.atleast_1d(s_hat), starts, cold)
         noise = jitter_noise(post.noise_std, post.inner_spread)
         log.info(f"inner fits at the answer from {len(starts) + 1} starts end up to {post.inner_spread:.3g} apart "
                  f"in Phi* ({time.perf_counter() - start:.1f} s)")
@@ -284,8 +284,7 @@ class Estimator:
             return ends, True
 
         def branch(s):
-            fit = self.surrogate.fit(np.atleast_1d(s), q_best)
-            return fit.phi + fit.prior
+            return self.surrogate.fit(np.atleast_1d(s), q_best).value
 
         reach = 1.959964 * std
         start = time.perf_counter()

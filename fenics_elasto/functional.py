@@ -151,13 +151,13 @@ class SurrogateProfile:
         J, _ = self.profile.surrogate.response(self.params.to_theta(s))
         return self.fit_inner.fit(J, start)
 
-    def inner_spread(self, s, starts) -> tuple[float, np.ndarray]:
-        """How far apart in Phi* the inner fits at s end from q0 and from each of
-        ``starts`` (0 for a convex inner problem; on a rough target the fit's local minima,
-        which a cold start picks among as theta moves: Phi*'s jaggedness), and the
-        controls of the lowest."""
-        fits = [self.fit(s, start) for start in [None, *starts]]
-        values = [fit.phi + fit.prior for fit in fits]
+    def inner_spread(self, s, starts, cold=None) -> tuple[float, np.ndarray]:
+        """How far apart in Phi* the inner fits at s end from q0 (``cold``, if already
+        made) and from each of ``starts`` (0 for a convex inner problem; on a rough target
+        the fit's local minima, which a cold start picks among as theta moves: Phi*'s
+        jaggedness), and the controls of the lowest."""
+        fits = [cold if cold is not None else self.fit(s)] + [self.fit(s, start) for start in starts]
+        values = [fit.value for fit in fits]
         return float(max(values) - min(values)), fits[int(np.argmin(values))].q
 
     def value_and_gradient(self, s) -> tuple[float, np.ndarray]:
@@ -167,7 +167,7 @@ class SurrogateProfile:
         self.evaluations += 1
         g = self.fit_inner.misfit.gradient(fit.residual)
         grad_theta = np.array([np.sum(g * (dJk @ fit.q)) for dJk in dJ])
-        return fit.phi + fit.prior, grad_theta * self.params.dtheta_ds(theta)
+        return fit.value, grad_theta * self.params.dtheta_ds(theta)
 
 
 # --------------------------------------------------------------------------- the outer loop

@@ -49,6 +49,11 @@ class LinearFit:
     iterations: int
     converged: bool
 
+    @property
+    def value(self) -> float:
+        """Phi* on this fit: the data misfit plus the prior."""
+        return self.phi + self.prior
+
 
 class GaussNewton:
     """Levenberg-Marquardt on y(q) = y0 + J q with the exact closest-feature curvature."""
