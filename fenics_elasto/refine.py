@@ -55,6 +55,7 @@ from fenics_elasto.errors import UserError, on_root, require
 from fenics_elasto.gmsh_models import fresh_gmsh_model, node_positions, open_msh, physical_facets, save
 from fenics_elasto.logs import log
 from fenics_elasto.scene import Scene, load_scene
+from fenics_elasto.surface import unique_rows
 
 FAMILY = {1: "Line", 2: "Triangle", 3: "Tetrahedron"}
 POINT = 15  # gmsh's 1-node point element: kept as it is
@@ -191,16 +192,6 @@ def lattice_keys(batch: Batch) -> np.ndarray:
     vertices = batch.nodes[:, : split.dim + 1]
     repeat = np.stack([np.repeat(np.arange(split.dim + 1), m) for m in split.points])  # (L, 2p)
     return np.sort(vertices[:, repeat], axis=-1)
-
-
-def unique_rows(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(first occurrence of each distinct row, each row's distinct index): np.unique(axis=0)
-    without its slow structured sort."""
-    order = np.lexsort(rows.T[::-1])
-    starts = np.r_[True, np.any(np.diff(rows[order], axis=0) != 0, axis=1)]
-    inverse = np.empty(len(rows), np.int64)
-    inverse[order] = np.cumsum(starts) - 1
-    return order[starts], inverse
 
 
 def refine_batches(batches: list[Batch], position: np.ndarray, source: Path) -> tuple[np.ndarray, np.ndarray]:

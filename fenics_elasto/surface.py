@@ -45,6 +45,16 @@ def triangle_edges(triangles: np.ndarray) -> np.ndarray:
     return np.sort(triangles[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
 
 
+def unique_rows(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(first occurrence of each distinct row, each row's distinct index): np.unique(axis=0)
+    without its slow structured sort."""
+    order = np.lexsort(rows.T[::-1])
+    starts = np.r_[True, np.any(np.diff(rows[order], axis=0) != 0, axis=1)]
+    inverse = np.empty(len(rows), np.int64)
+    inverse[order] = np.cumsum(starts) - 1
+    return order[starts], inverse
+
+
 def quadratic_edges(triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Edges of gmsh 6-node triangles (v0, v1, v2, e01, e12, e20): (vertex pairs,
     sorted within each row; the edge's midpoint node), three rows per triangle."""
@@ -96,7 +106,8 @@ class Surface:
         apart), polyline ends and junctions in 2D."""
         n = len(self.points)
         edges = np.sort(self.cells, axis=1) if self.dim == 2 else triangle_edges(self.cells)
-        edges, uses = np.unique(edges, axis=0, return_counts=True)
+        first, which = unique_rows(edges)
+        edges, uses = edges[first], np.bincount(which)
         valence = np.bincount(edges.ravel(), minlength=n)
         rim = np.zeros(n, bool)
         rim[edges[uses < 2].ravel()] = self.dim == 3
