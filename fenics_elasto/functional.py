@@ -34,6 +34,7 @@ from fenics_elasto.logs import log
 from fenics_elasto.inner import GaussNewton, InnerResult
 from fenics_elasto.interrupts import check_interrupt
 
+BRACKET_GUARD = 0.05  # bracketed_minimum: a step keeps this share of the bracket from its ends
 
 
 @dataclass
@@ -174,10 +175,22 @@ class SurrogateProfile:
 
 
 def minimize_profile(profile: Profile, xtol: np.ndarray, maxiter: int) -> int:
-    """L-BFGS-B over s from the best solved value, every value solved in full; stops once
-    a step moves every constant by less than ``xtol`` (more digits of E would cost
-    factorizations, not accuracy). Returns the iterations."""
+    """Minimise Phi* over s, every value solved in full; stops once a step moves every
+    constant by less than ``xtol`` (more digits of E would cost factorizations, not
+    accuracy). One constant whose minimum the solved values bracket: cubic steps inside
+    the bracket (``bracketed_minimum``); else L-BFGS-B from the best solved value.
+    Returns the iterations."""
     params = profile.params
+    if len(params) == 1:
+        def slope(x: float) -> tuple[float, float]:  # Phi* and dPhi*/ds (solved values are kept)
+            value, grad = profile.value_and_gradient(np.array([x]))
+            return float(value), float(grad[0])
+
+        known = [(float(s[0]), *slope(float(s[0]))) for s, _, _ in profile.solved]
+        log.info("outer: cubic steps inside the scan's bracket, if it makes one (envelope gradient)")
+        iterations = bracketed_minimum(slope, known, float(xtol[0]), maxiter)
+        if iterations is not None:
+            return iterations
     scale = max(profile.best().value, 1e-300)  # L-BFGS-B's tolerances are absolute below 1
     settle = Settle(params.to_s(profile.best_theta()), xtol)
 
@@ -189,6 +202,48 @@ def minimize_profile(profile: Profile, xtol: np.ndarray, maxiter: int) -> int:
     minimize(objective, settle.s, jac=True, method="L-BFGS-B", bounds=params.s_bounds(), callback=settle,
              options={"maxiter": maxiter, "ftol": 1e-12, "gtol": 1e-9})
     return settle.iterations
+
+
+def bracketed_minimum(value_and_gradient, known: list[tuple[float, float, float]], xtol: float,
+                      maxiter: int) -> int | None:
+    """A local minimum of f in one variable (``value_and_gradient(x)`` -> (f, f')), from
+    points (x, f, f') already known whose lowest has another on its downhill side: the
+    minimum lies between the two, and the minimiser of the cubic matching f and f' at
+    both ends is the next point (kept BRACKET_GUARD of the bracket inside it). Stops when
+    that cubic puts the minimum within ``xtol`` of the lowest point, or once a step moves
+    x by less. The scan's values and envelope gradients make the first bracket, so the
+    full-space outer loop spends no solve on a first step of unknown length (L-BFGS-B's
+    went to E's bound on the phantom: a factorization and an inner solve wasted).
+    Returns the points evaluated; None, with nothing evaluated, if the known points
+    bracket no minimum (it lies at a bound or beyond them: L-BFGS-B, which handles bounds)."""
+    points = list(known)
+    for iteration in range(maxiter):
+        x, f, g = min(points, key=lambda p: p[1])
+        downhill = [p for p in points if (p[0] - x) * g < 0]
+        if not downhill:
+            return iteration if g == 0.0 or iteration else None
+        far = min(downhill, key=lambda p: abs(p[0] - x))
+        step = cubic_minimizer((x, f, g), far)
+        if abs(step - x) < xtol:
+            return iteration
+        lo, hi = sorted((x, far[0]))
+        step = float(np.clip(step, lo + BRACKET_GUARD * (hi - lo), hi - BRACKET_GUARD * (hi - lo)))
+        points.append((step, *value_and_gradient(step)))
+        if abs(step - x) < xtol:
+            return iteration + 1
+    return maxiter
+
+
+def cubic_minimizer(a: tuple[float, float, float], b: tuple[float, float, float]) -> float:
+    """The minimiser of the cubic through (x, f, f') at a and b (Nocedal & Wright eq.
+    3.59), or the secant root of f' where that cubic has none."""
+    (xa, fa, ga), (xb, fb, gb) = a, b
+    d1 = ga + gb - 3 * (fa - fb) / (xa - xb)
+    root = d1 * d1 - ga * gb
+    if root < 0 or gb - ga + 2 * np.sign(xb - xa) * np.sqrt(root) == 0:
+        return xa - ga * (xb - xa) / (gb - ga) if gb != ga else 0.5 * (xa + xb)
+    d2 = np.sign(xb - xa) * np.sqrt(root)
+    return float(xb - (xb - xa) * (gb + d2 - d1) / (gb - ga + 2 * d2))
 
 
 class Settle:

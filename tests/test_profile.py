@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from fenics_elasto.estimate import Estimator, Options, estimate
+from fenics_elasto.functional import bracketed_minimum, cubic_minimizer
 from fenics_elasto.objective import InverseProblem
 from fenics_elasto.posterior import laplace
 from fenics_elasto.scene import load_scene
@@ -42,6 +43,34 @@ def test_estimate_ends_at_or_below_phi_star_at_the_truth(letter):
     at_truth = profile_of(letter).solve(np.array([0.3]), "truth").value
     final = found["objective"]["final"] + found["objective"]["prior"]
     assert final <= at_truth * (1 + 1e-9), (final, at_truth)
+
+
+def test_cubic_minimizer_is_exact_on_a_cubic_and_a_parabola():
+    f = lambda x: (x - 1.3) ** 2 * (x + 4.0)  # noqa: E731  local minimum at 1.3
+    df = lambda x: 2 * (x - 1.3) * (x + 4.0) + (x - 1.3) ** 2  # noqa: E731
+    assert cubic_minimizer((0.0, f(0.0), df(0.0)), (3.0, f(3.0), df(3.0))) == pytest.approx(1.3, abs=1e-12)
+    assert cubic_minimizer((3.0, f(3.0), df(3.0)), (0.0, f(0.0), df(0.0))) == pytest.approx(1.3, abs=1e-12)
+    assert cubic_minimizer((-1.0, 9.0, -6.0), (5.0, 9.0, 6.0)) == pytest.approx(2.0, abs=1e-12)  # (x - 2)^2
+
+
+def test_bracketed_minimum_from_scan_points_and_its_fallback():
+    """From scan-like points that bracket the minimum of a skewed, non-polynomial
+    function: within xtol of it in a few evaluations; points that bracket nothing (the
+    minimum beyond them): None, nothing evaluated."""
+    calls = []
+
+    def f(x):  # exp(x) - 3x: minimum at log 3, steep on one side
+        calls.append(x)
+        return np.exp(x) - 3 * x, np.exp(x) - 3
+
+    known = [(x, *f(x)) for x in (-2.0, 0.0, 0.3, 3.5)]
+    calls.clear()
+    evaluated = bracketed_minimum(f, known, 1e-3, 40)
+    assert evaluated == len(calls) <= 6
+    best = min(known + [(x, *f(x)) for x in list(calls)], key=lambda p: p[1])[0]
+    assert abs(best - np.log(3.0)) < 1e-3
+    calls.clear()
+    assert bracketed_minimum(f, [(x, *f(x)) for x in (-3.0, -2.0)], 1e-3, 40) is None and len(calls) == 2
 
 
 def test_gauss_newton_hessian_matches_finite_differences_of_the_gradient(letter):
