@@ -155,6 +155,7 @@ class ElasticModel:
         self.settings = solver or SolverSettings.from_config(scene.config.get("solver"))
         self.stats = SolverStats(self.settings.method_for(self.num_dofs))
         self._cache_size = cache_size
+        self._summed = None  # (c, unconstrained K(c)): apply_stiffness's latest sum
 
     @property
     def method(self) -> str:
@@ -252,7 +253,18 @@ class ElasticModel:
         return combine(c, self.terms)
 
     def apply_stiffness(self, c, x: PETSc.Vec, out: PETSc.Vec) -> PETSc.Vec:
-        """out = (sum_j c_j M_j) x, without forming the sum."""
+        """out = (sum_j c_j M_j) x. With the direct method the sum for the latest c is kept
+        (one product instead of one per term: every inner iteration of a full-space fit
+        needs two; the matrix is small beside the factors); the iterative method, meant
+        for meshes where memory binds, forms no sum."""
+        if self.method == "direct":
+            key = tuple(np.asarray(c, float))
+            if self._summed is None or self._summed[0] != key:
+                if self._summed is not None:
+                    self._summed[1].destroy()
+                self._summed = (key, self.stiffness(c))
+            self._summed[1].mult(x, out)
+            return out
         out.zeroEntries()
         tmp = out.duplicate()
         for cj, M in zip(c, self.terms):
