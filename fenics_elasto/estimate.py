@@ -1,7 +1,8 @@
 """The nested estimate (docs/method.md §5): materials outside, boundary controls inside.
 
 The outer loop minimises the profile Phi*(theta) (functional.py) over the estimated
-constants in s = (log E, nu) with bounded L-BFGS-B and the envelope gradient. Start:
+constants in s = (log E, nu) with bounded L-BFGS-B and the envelope gradient (one
+constant whose minimum the scan brackets: cubic steps inside the bracket). Start:
 the boundary controls from iterative surface matching (matching.py), the materials
 from a scan over their bounds. With reduced bases (and ``surrogate``, the default) the
 outer loop runs on the reduced-basis response in the materials and solves only its
