@@ -2,7 +2,8 @@
 
 The outer loop minimises the profile Phi*(theta) (functional.py) over the estimated
 constants in s = (log E, nu) with bounded L-BFGS-B and the envelope gradient (one
-constant whose minimum the scan brackets: cubic steps inside the bracket). Start:
+constant whose minimum the scan brackets, on a target that is not rough: cubic steps
+inside the bracket). Start:
 the boundary controls from iterative surface matching (matching.py), the materials
 from a scan over their bounds. With reduced bases (and ``surrogate``, the default) the
 outer loop runs on the reduced-basis response in the materials and solves only its
@@ -221,7 +222,8 @@ class Estimator:
             for theta in points:
                 self.profile.solve(theta, "scan", self._start_for(theta))
             self.check_identifiable()
-            self.outer_iterations = minimize_profile(self.profile, xtol, self.options.outer_maxiter)
+            self.outer_iterations = minimize_profile(self.profile, xtol, self.options.outer_maxiter,
+                                                     smooth=not self.problem.misfit.rough())
         else:  # one factorization at the initial values; the scan on the surrogate it seeds
             log.info(f"initial values solved in full with their sensitivities, then a scan of {len(points)} "
                      f"material values on the surrogate (inner: {self.inner_name})")

@@ -174,14 +174,16 @@ class SurrogateProfile:
 # --------------------------------------------------------------------------- the outer loop
 
 
-def minimize_profile(profile: Profile, xtol: np.ndarray, maxiter: int) -> int:
+def minimize_profile(profile: Profile, xtol: np.ndarray, maxiter: int, smooth: bool = True) -> int:
     """Minimise Phi* over s, every value solved in full; stops once a step moves every
     constant by less than ``xtol`` (more digits of E would cost factorizations, not
-    accuracy). One constant whose minimum the solved values bracket: cubic steps inside
-    the bracket (``bracketed_minimum``); else L-BFGS-B from the best solved value.
-    Returns the iterations."""
+    accuracy). One constant, a ``smooth`` Phi* and a minimum the solved values bracket:
+    cubic steps inside the bracket (``bracketed_minimum``); else L-BFGS-B from the best
+    solved value. On a jagged Phi* (a rough target) the bracket's local steps stopped in
+    worse local minima than L-BFGS-B's long ones (2D inclusion, 0.5 % noise, 10 draws:
+    higher Phi* in 6, mean error +5.8 % against +0.1 %). Returns the iterations."""
     params = profile.params
-    if len(params) == 1:
+    if len(params) == 1 and smooth:
         def slope(x: float) -> tuple[float, float]:  # Phi* and dPhi*/ds (solved values are kept)
             value, grad = profile.value_and_gradient(np.array([x]))
             return float(value), float(grad[0])

@@ -142,6 +142,11 @@ class Misfit:
         return {"surfaces": len(smoothed), "noise_before": max(s.smoothed_from for s in smoothed),
                 "noise_after": max(s.noise() for s in smoothed)}
 
+    def rough(self) -> bool:
+        """A surface target rougher than its sampling (Surface.is_rough) as matched: then
+        Phi* is jagged in the materials (the closest point is the nearest spike)."""
+        return any(s.is_rough() for s in self.surfaces)
+
     def roughness(self) -> float:
         """The surface targets' own noise (0 without surfaces): the posterior's noise floor."""
         if self._roughness is None:  # a pass over every target vertex: once

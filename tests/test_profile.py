@@ -289,17 +289,22 @@ def test_rough_organ_targets_are_smoothed_and_outlines_are_not(scenes, letter, t
     std = 0.3 * min(read_surface(p, 3).mean_edge for p in clean.values())
     noisy = {g: noisy_copy(p, tmp_path / f"noisy_{g}.vtp", std, np.random.default_rng(5)) for g, p in clean.items()}
 
-    def smoothing(files):
+    def misfit(files):
         table = ", ".join(f"{g} = '{p}'" for g, p in files.items())
-        return InverseProblem(load_scene(scenes["prostate-phantom"], [f"target.surfaces={{{table}}}"])).misfit.smoothing()
+        return InverseProblem(load_scene(scenes["prostate-phantom"], [f"target.surfaces={{{table}}}"])).misfit
 
-    assert smoothing(clean) is None
-    found = smoothing(noisy)
+    assert misfit(clean).smoothing() is None
+    smoothed = misfit(noisy)
+    found = smoothed.smoothing()
     assert found["surfaces"] == 3 and found["noise_before"] == pytest.approx(std, rel=0.1)
     assert found["noise_after"] < 0.5 * std  # the filter's gain for white noise on a surface
     outline = letter.scene.path.parent / letter.scene.config["target"]["surface"]
     rough = noisy_copy(outline, tmp_path / "letter.vtp", 0.3 * read_surface(outline, 2).mean_edge, np.random.default_rng(5))
-    assert InverseProblem(load_scene(letter.scene.path, [f"target.surface='{rough}'"])).misfit.smoothing() is None
+    rough_letter = InverseProblem(load_scene(letter.scene.path, [f"target.surface='{rough}'"])).misfit
+    assert rough_letter.smoothing() is None
+    # what the outer loop asks before taking bracketed cubic steps (functional.minimize_profile)
+    assert rough_letter.rough() and not letter.misfit.rough()
+    assert not smoothed.rough()  # matched after smoothing
 
 
 def test_posterior_noise_is_the_larger_of_residual_and_roughness():
