@@ -34,7 +34,7 @@ from fenics_elasto.interrupts import Interrupted
 from fenics_elasto.matching import match_surface
 from fenics_elasto.misfit import SurfaceTerm
 from fenics_elasto.objective import Evaluation, InverseProblem
-from fenics_elasto.posterior import (CHI2_95, JITTER_NOISE, JITTER_STARTS, Posterior, jitter_noise, posterior_at,
+from fenics_elasto.posterior import (CHI2_95, JITTER_NOISE, JITTER_STARTS, Z95, Posterior, jitter_noise, posterior_at,
                                     profile_interval, target_offset, untrusted_sides)
 from fenics_elasto.reduction import bases_fit, missing_wall_motion, reach_warning
 from fenics_elasto.surrogate import MaterialSurrogate
@@ -289,7 +289,7 @@ class Estimator:
         def branch(s):
             return self.surrogate.fit(np.atleast_1d(s), q_best).value
 
-        reach = 1.959964 * std
+        reach = Z95 * std
         start = time.perf_counter()
         low, high = profile_interval(branch, s_hat, std, noise, bounds)
         log.info(f"interval on the lowest minimum's branch, threshold raised by the spread "

@@ -45,6 +45,8 @@ from fenics_elasto.functional import Linearisation
 # 0.76 (a user's inclusion E, vertices only), 0.91 (phantom E, bases); 0.011 for the
 # phantom's E in the full force space, where every E fits the organ surfaces.
 SEPARABLE_MIN = 0.05
+Z95 = 1.959964  # the two-sided 95 % quantile of the standard normal
+CHI2_95 = Z95**2  # ... and of chi-square with one degree of freedom (3.841459)
 
 
 @dataclass
@@ -78,7 +80,7 @@ class Posterior:
         """The Laplace std, or where the profile interval exists its half-width / 1.96 (the
         std of the Gaussian with that 95 % interval: one number for a skewed answer)."""
         if self.profile_s is not None:
-            return (self.profile_s[:, 1] - self.profile_s[:, 0]) / (2 * 1.959964)
+            return (self.profile_s[:, 1] - self.profile_s[:, 0]) / (2 * Z95)
         return self.laplace_std_s
 
     @property
@@ -100,11 +102,11 @@ class Posterior:
         ok = np.isfinite(base) & (base > 0) & np.isfinite(self.patch_std_s)
         return np.where(ok, np.maximum(1.0, self.patch_std_s / np.where(ok, base, 1.0)), 1.0)
 
-    def interval(self, level: float = 1.959964) -> np.ndarray:
+    def interval(self, level: float = Z95) -> np.ndarray:
         """(n, 2) the 95 % interval of each constant in its own units (E: from log E): the
         profile likelihood's where it was computed, else the Laplace one; each side
         stretched by ``widening``."""
-        if self.profile_s is not None and level == 1.959964:
+        if self.profile_s is not None and level == Z95:
             low, high = self.profile_s.T
         else:
             low, high = self.s - level * self.laplace_std_s, self.s + level * self.laplace_std_s
@@ -157,7 +159,7 @@ class Posterior:
         for label, sd, (lo, hi), share in zip(self.labels, self.std_s, bounds_s, self.separable):
             if share < SEPARABLE_MIN:
                 out[label] = f"the boundary forces can mimic {100 * (1 - share):.1f} % of its effect on the data"
-            elif not np.isfinite(sd) or 2 * 1.959964 * sd > hi - lo:
+            elif not np.isfinite(sd) or 2 * Z95 * sd > hi - lo:
                 out[label] = "its 95 % interval is wider than its bounds"
         return out
 
@@ -229,31 +231,33 @@ def patch_covariance(lin: Linearisation, positions: np.ndarray) -> np.ndarray:
     a structured residual (a target's staircase or remeshing, a source mesh too coarse)
     does to the answer -- which the Laplace covariance, counting every row as independent
     noise, cannot see."""
-    B, S_inv = _profiled(lin)
+    B, S_inv, known = _profiled(lin)
     gdim = positions.shape[1]
     patch = spatial_patches(positions, max(2, round(np.sqrt(len(positions)))))[np.arange(len(lin.residual)) // gdim]
     count = int(patch.max()) + 1
     pulls = np.stack([np.bincount(patch, B[:, k] * lin.residual, minlength=count) for k in range(B.shape[1])], axis=1)
-    known = np.where(np.isfinite(S_inv), S_inv, 0.0)  # undetermined directions: inf below, not inf * 0
     out = known @ (pulls.T @ pulls) @ known * count / (count - 1)
     return np.where(np.isfinite(S_inv), out, np.inf)
 
 
-def _profiled(lin: Linearisation) -> tuple[np.ndarray, np.ndarray]:
-    """(B, S^-1): the sensitivity in s with the controls profiled out,
-    B = A_s - A_q (A_q^T A_q + alpha I)^-1 A_q^T A_s, and the inverse Schur complement
-    S = A_s^T B. A change de of the residual moves the optimum by ds = -S^-1 B^T de."""
+def _profiled(lin: Linearisation) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(B, S^-1, S^-1 with its infinite entries zeroed): the sensitivity in s with the
+    controls profiled out, B = A_s - A_q (A_q^T A_q + alpha I)^-1 A_q^T A_s, and the
+    inverse Schur complement S = A_s^T B, infinite along undetermined constants -- zeroed
+    for products (then marked inf or NaN by the caller, not inf * 0). A change de of the
+    residual moves the optimum by ds = -S^-1 B^T de."""
     p = lin.A_q.shape[1]
     Hqq = lin.A_q.T @ lin.A_q + lin.prior * np.eye(p)
     B = lin.A_s - lin.A_q @ np.linalg.lstsq(Hqq, lin.A_q.T @ lin.A_s, rcond=None)[0]
-    return B, _inverse(lin.A_s.T @ B)
+    S_inv = _inverse(lin.A_s.T @ B)
+    return B, S_inv, np.where(np.isfinite(S_inv), S_inv, 0.0)
 
 
 def offset_shift(lin: Linearisation, de: np.ndarray) -> np.ndarray:
     """ds (first order) when the weighted residual changes by ``de`` and the controls
     follow: -S^-1 B^T de."""
-    B, S_inv = _profiled(lin)
-    ds = -np.where(np.isfinite(S_inv), S_inv, 0.0) @ (B.T @ de)
+    B, S_inv, known = _profiled(lin)
+    ds = -known @ (B.T @ de)
     return np.where(np.isfinite(np.diag(S_inv)), ds, np.nan)  # an undetermined constant: no first order
 
 
@@ -272,9 +276,6 @@ def spatial_patches(points: np.ndarray, count: int) -> np.ndarray:
     return patch
 
 
-CHI2_95 = 3.841459  # the 95 % quantile of chi-square with one degree of freedom
-
-
 def profile_interval(value, s_hat: float, std: float, noise: float, bounds, tries: int = 8) -> tuple[float, float]:
     """The 95 % profile-likelihood interval of one constant in s: where Phi*(s) (``value``,
     the controls profiled out) rises CHI2_95 noise^2 / 2 above its minimum -- Phi* /
@@ -289,7 +290,7 @@ def profile_interval(value, s_hat: float, std: float, noise: float, bounds, trie
     for direction, bound in ((-1.0, bounds[0]), (1.0, bounds[1])):
         room = abs(bound - s_hat)
         below, above = (0.0, -target), None  # (offset, g) with g < 0 inside the interval, > 0 outside
-        t = min(1.959964 * std, room) if np.isfinite(std) and std > 0 else room
+        t = min(Z95 * std, room) if np.isfinite(std) and std > 0 else room
         for _ in range(tries):
             g = np.sqrt(max(value(s_hat + direction * t) - phi_hat, 0.0)) - target
             if abs(g) < 0.02 * target:
@@ -336,7 +337,7 @@ def untrusted_sides(ends, s_hat: float, std: float, bounds) -> tuple[tuple[float
     inclusion's) is ~0.8. A side that ends at its bound is open to it, not short (the
     letter's nu = 0.053 at 0.5 % noise: its side reached nu = 0, then read as jagged and
     replaced by a Laplace end at nu = -0.14, outside the bounds)."""
-    reach = 1.959964 * std
+    reach = Z95 * std
     short = [abs(end - s_hat) < JAGGED_SHARE * reach and end != bound for end, bound in zip(ends, bounds)]
     low = max(s_hat - reach, bounds[0]) if short[0] else ends[0]
     high = min(s_hat + reach, bounds[1]) if short[1] else ends[1]
