@@ -20,7 +20,7 @@ import ufl
 
 import dolfinx.fem.petsc
 from dolfinx import fem
-from fenics_elasto.elasticity import ElasticModel, epsilon
+from fenics_elasto.elasticity import ElasticModel, epsilon, stiffness_quadrature
 from fenics_elasto.meshing import build_scene
 from fenics_elasto.scene import load_scene
 from fenics_elasto.simulate import material_values
@@ -46,7 +46,8 @@ def direct_assembly(model, E, nu):
         cells = Q.dofmap.list[scene.cell_tags.find(material.tag), 0]
         mu_f.x.array[cells], lam_f.x.array[cells] = mu[m], lam[m]
     u, v = ufl.TrialFunction(model.V), ufl.TestFunction(model.V)
-    form = fem.form(2 * mu_f * ufl.inner(epsilon(u), epsilon(v)) * ufl.dx + lam_f * ufl.div(u) * ufl.div(v) * ufl.dx)
+    dx = ufl.dx(metadata=stiffness_quadrature(model.V))  # the model's rule: like is compared with like
+    form = fem.form(2 * mu_f * ufl.inner(epsilon(u), epsilon(v)) * dx + lam_f * ufl.div(u) * ufl.div(v) * dx)
 
     def assemble():
         K = dolfinx.fem.petsc.assemble_matrix(form)
