@@ -4,8 +4,8 @@
 
 The story:
 1. A source patient (the prostate phantom) and a dozen example deformations of it:
-   bladder and rectum inflated and shifted by random amounts (tissue 10 kPa,
-   prostate 20-80 kPa), written as surfaces like a CT would give them.
+   bladder and rectum inflated and shifted by random amounts (tissue 10 kPa, the
+   patient's prostate one E of 20-80 kPa), written as surfaces like a CT would give them.
 2. `train`: surface-match the source to every example, PCA of the bladder/rectum
    displacements -> force bases W.
 3. Held-out targets: a finer mesh of the same patient, true prostate E in
