@@ -438,7 +438,8 @@ def _warnings(estimator: Estimator, theta, interrupted: bool, fit=None, post=Non
     profile = estimator.profile
     if profile.unconverged:
         out.append(f"the inner solver stopped at its iteration limit ({estimator.options.inner_maxiter}) at "
-                   f"{profile.unconverged} of {len(profile.solved)} material values: raise optimizer.inner_maxiter")
+                   f"{profile.unconverged} of {len([1 for *_, stage in profile.solved if stage != 'ci'])} material "
+                   "values: raise optimizer.inner_maxiter")
     for label, value, (lo, hi) in zip(estimator.params.labels, theta, estimator.params.bounds):
         if np.isclose(value, lo, rtol=1e-3) or np.isclose(value, hi, rtol=1e-3):
             out.append(f"{label} = {value:.4g} is at its bound [{lo:g}, {hi:g}]: widen the bounds or check the set-up")
