@@ -8,7 +8,9 @@ each noise level (a fraction of the body's size, as the std of Gaussian noise ad
 every target point) ``--draws`` noisy copies are estimated. Printed per case and level:
 the coverage of the 95 % interval (share of draws whose interval holds the truth), the
 mean reported sigma against the spread (std) of the estimates over the draws, the mean
-error, and the mean noise std the estimate found from its residual.
+error, the mean noise std the estimate found from its residual, and what the
+uncertainty cost (``uncertainty.seconds``: posterior, offset and profile interval)
+against the rest of the estimate.
 
 Draws whose interval is wider than the bounds are refused by default ("undetermined");
 here they are estimated anyway (allow_undetermined) and counted in the last column.
@@ -65,7 +67,7 @@ def one_case(tmp: Path, name: str, levels, draws: int, known_noise: bool = False
     rows = []
     for level in levels:
         rng = np.random.default_rng(7)
-        found, sigmas, inside, noises, start = [], [], [], [], time.perf_counter()
+        found, sigmas, inside, noises, shares, start = [], [], [], [], [], time.perf_counter()
         determined = []
         for draw in range(draws if level > 0 else 1):
             settings = noisy_targets(surfaces, tmp / name / f"noisy_{level}_{draw}", level * size, rng) if level > 0 \
@@ -84,9 +86,12 @@ def one_case(tmp: Path, name: str, levels, draws: int, known_noise: bool = False
             sigmas.append(unc["std"] * scale)
             inside.append(unc["ci95"][0] * scale <= truth <= unc["ci95"][1] * scale)
             noises.append(result["uncertainty"]["noise_std"])
+            spent = result["uncertainty"]["seconds"]
+            shares.append(spent / (result["wall_time_s"] - spent))
         found, sigmas, inside, determined = map(np.array, (found, sigmas, inside, determined))
         rows.append(f"| {name} | {100 * level:g} % | {len(found)} | {coverage(found, sigmas, inside, truth)} | "
                     f"{np.mean(noises):.2g} | {(time.perf_counter() - start) / len(found):.1f} | "
+                    f"{100 * np.median(shares):.0f} % ({100 * np.max(shares):.0f} %) | "
                     f"{len(found) - determined.sum()} | "
                     f"{coverage(found[determined], sigmas[determined], inside[determined], truth)} |")
         print(rows[-1], flush=True)
@@ -122,9 +127,10 @@ def main():
     args = parser.parse_args()
     levels = [float(v) for v in args.noise.split(",")]
     print("| case | noise (of body size) | draws | coverage of the 95 % interval | mean sigma | spread of estimates "
-          "| sigma / spread | mean error | noise std found | s per estimate | undetermined (refused by default) "
+          "| sigma / spread | mean error | noise std found | s per estimate "
+          "| uncertainty's cost: share of the rest of the estimate, median (max) | undetermined (refused by default) "
           "| determined draws only: coverage | mean sigma | spread | sigma / spread | mean error |")
-    print("|" + "---|" * 16)
+    print("|" + "---|" * 17)
     with tempfile.TemporaryDirectory() as tmp:
         for name in args.cases.split(","):
             one_case(Path(tmp), name, levels, args.draws, args.known_noise)

@@ -368,11 +368,13 @@ def estimate(problem: InverseProblem, options: Options | None = None, basis: np.
         interrupted = True
         log.info("interrupted: writing the best result so far")
     theta, best, forces = estimator.final()
+    clock = time.perf_counter()
     post = estimator.posterior(best)
     if post is not None:  # the final answer's only: the set-up check's posterior has no use for it
         post.offset = target_offset(problem.misfit, estimator.profile.linearisation(best), best.evaluation)
     if post is not None and not interrupted:
         estimator.profile_likelihood_interval(post)
+    uncertainty_seconds = time.perf_counter() - clock
     fit = fit_of_bases(estimator, theta, best)
     warnings += (estimator.warnings + _warnings(estimator, theta, interrupted, fit, post) + extent_warnings
                  + _target_warnings(problem, best))
@@ -383,6 +385,8 @@ def estimate(problem: InverseProblem, options: Options | None = None, basis: np.
     record["uncertainty"] = post.record() if post is not None else {
         "note": f"not computed: the {estimator.inner_name} inner solver gives no response of the controls "
                 "(use reduced bases, or inner = \"gauss-newton\")"}
+    if post is not None:  # what the answer's posterior, offset and profile interval cost
+        record["uncertainty"]["seconds"] = round(uncertainty_seconds, 3)
     smoothing = problem.misfit.smoothing() if problem.misfit is not None else None
     if smoothing is not None:
         record["uncertainty"]["target_smoothed"] = smoothing

@@ -66,6 +66,7 @@ def test_surfaces_plus_interior_landmarks(tmp_path):
     assert abs(result.materials["letter"]["nu"] - 0.35) < 0.005, result.materials
     assert result["distances"]["landmarks"]["max"] < 5e-3
     assert "uncertainty" in result.record and result["uncertainty"]["letter.nu"]["std"] > 0
+    assert 0 < result["uncertainty"]["seconds"] < result["wall_time_s"]  # its own share of the time
 
 
 def test_a_landmark_outside_the_body_is_one_line(scenes, tmp_path, capsys):
