@@ -70,7 +70,8 @@ def main():
     for E in cases:
         results[E] = run_case(source, targets[E].settings(landmarks=False), bases.W)
         print(f"   true E = {E:g}, reduced, surfaces: E = {recovered(results[E]):.2f} ({results[E]['seconds']:.1f} s, "
-              f"{iterations(results[E])} outer/inner)", flush=True)
+              f"{iterations(results[E])} outer/inner; uncertainty {results[E]['uncertainty']['seconds']:.2f} s of it)",
+              flush=True)
     lines = table1(results, rank)
     print("4. speed-up: full force space against reduced, landmark targets"
           + (" (skipped by --quick: a full-space estimate costs three reduced ones)" if args.quick else ""), flush=True)
