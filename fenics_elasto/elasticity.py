@@ -315,13 +315,16 @@ class ElasticModel:
         u.name = name
         return u
 
-    def solve(self, c, clamped: np.ndarray, rhs: PETSc.Vec | None = None, prescribed=None) -> fem.Function:
+    def solve(self, c, clamped: np.ndarray, rhs: PETSc.Vec | None = None, prescribed=None,
+              nearby: bool = False) -> fem.Function:
         """u with K u = rhs on free DOFs and u = prescribed (or 0) on the clamped DOFs.
 
         ``c``: the coefficients of K (``coefficients``); ``prescribed``: a Function holding
-        the clamped values (others ignored).
+        the clamped values (others ignored); ``nearby``: a single solve may borrow the
+        factors of a nearby material value (solvers.NearbySolver) instead of factorizing.
         """
-        factor = self.factorize(c, clamped)
+        borrowed = self.solvers.nearby(c, clamped) if nearby else None
+        factor = borrowed or self.factorize(c, clamped)
         load = self.function("rhs")  # keep the Function alive: its petsc_vec borrows its memory
         b = load.x.petsc_vec
         if rhs is not None:
@@ -337,7 +340,11 @@ class ElasticModel:
         else:
             b.array[clamped] = 0.0
         u = self.function()
-        factor.solve(b, u.x.petsc_vec)
+        try:
+            factor.solve(b, u.x.petsc_vec)
+        finally:
+            if borrowed is not None:
+                borrowed.destroy()  # its own K and KSP; the factors stay with their solver
         u.x.scatter_forward()
         return u
 

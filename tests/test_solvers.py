@@ -104,6 +104,29 @@ def test_cache_keeps_two_values_and_reuses_the_oldest(cantilever):
     assert model.factorizations == 3 and model.stats.analyses == 2
 
 
+def test_a_nearby_material_value_borrows_the_factors(phantom_p1):
+    """A single solve at a new material value within NEARBY_RATIO of a factorized one
+    (simulate's) runs CG on the factors already made -- no factorization -- and equals a
+    fresh direct solve to rtol; a value beyond that ratio factorizes."""
+    model = ElasticModel(phantom_p1, SolverSettings(method="direct"))
+    clamped = model.clamped_dofs(phantom_p1.fixed)
+    load = _load(model)  # kept alive: its petsc_vec borrows the Function's memory
+    E, nu = material_values(phantom_p1)
+
+    def solve(m, scale, nearby=True):
+        c = m.coefficients(E * np.r_[scale, np.ones(len(E) - 1)], nu)
+        return m.solve(c, clamped, load.x.petsc_vec, nearby=nearby)
+
+    solve(model, 1.0)
+    assert model.factorizations == 1
+    near = solve(model, 2.5).x.array.copy()
+    assert model.factorizations == 1 and model.stats.iterations > 0
+    fresh = ElasticModel(phantom_p1, SolverSettings(method="direct"))
+    assert relative(near, solve(fresh, 2.5, nearby=False).x.array) < 1e-7
+    solve(model, 10.0)  # outside NEARBY_RATIO of the factors at 1.0
+    assert model.factorizations == 2
+
+
 @pytest.mark.slow
 def test_blr_is_refined_to_the_tolerance(scenes):
     """P2 phantom (BLR compresses nothing below ~10k DOFs): factors compressed at 1e-3
@@ -267,12 +290,18 @@ def test_cli_failed_factorization_is_one_line_and_exit_2(scenes, tmp_path, monke
 
 @pytest.mark.slow
 def test_two_ranks_equal_serial(scenes, tmp_path):
-    """Iterative on 2 ranks = direct serially (forward solve and block, canonical order)."""
+    """Iterative on 2 ranks = direct serially (forward solve and block, canonical order),
+    and so is direct on 2 ranks, its solve at a nearby E on the first factors included."""
     problem = scenes["prostate-phantom"]
-    serial, parallel = tmp_path / "serial.npz", tmp_path / "parallel.npz"
+    serial, parallel, direct2 = tmp_path / "serial.npz", tmp_path / "parallel.npz", tmp_path / "direct2.npz"
     run_mpi_script(MPI_SCRIPT, 1, problem, "direct", serial)
     run_mpi_script(MPI_SCRIPT, 2, problem, "iterative", parallel)
-    a, b = np.load(serial), np.load(parallel)
+    run_mpi_script(MPI_SCRIPT, 2, problem, "direct", direct2)
+    a, b, c = np.load(serial), np.load(parallel), np.load(direct2)
     assert int(b["ranks"]) == 2 and str(b["method"]) == "iterative"
     assert relative(b["u"], a["u"]) < 1e-6
     assert relative(b["X"], a["X"]) < 1e-6
+    # one factorization per clamped set (forces; the block's boundary modes): the nearby solve adds none
+    assert int(c["ranks"]) == 2 and int(a["factorizations"]) == int(c["factorizations"]) == 2
+    for key in ("u", "X", "near"):
+        assert relative(c[key], a[key]) < 1e-6, key

@@ -1,6 +1,8 @@
 """Run under mpiexec: a forward solve and a block response with the given [solver]
-method (P1 phantom); saves both at the prostate surface's nodes (neither clamped nor
-loaded), in canonical node order: the same under any number of ranks."""
+method (P1 phantom), and the forward solve again at twice the prostate's E as simulate
+makes it (direct: CG on the first factors, solvers.NearbySolver); saves them at the
+prostate surface's nodes (neither clamped nor loaded), in canonical node order: the
+same under any number of ranks."""
 
 import sys
 
@@ -21,9 +23,12 @@ forces = rng.standard_normal(forward.force_dofs)
 basis = rng.standard_normal((forward.force_dofs, 3))
 u = forward.from_forces(theta, forces)
 X = forward.response_block(theta, basis)
+f = forward.load(forces)  # kept alive: its petsc_vec borrows its memory
+near = forward.model.solve(forward.coefficients(2 * theta)[0], forward.clamped, f.x.petsc_vec, nearby=True)
 nodes = forward.model.node_set(["prostate_surface"])
 rows = nodes.dofs(forward.model.bs).ravel()
 block = nodes.gather(X[rows].reshape(len(nodes), -1))
-field = nodes.gather(u.x.array.reshape(-1, forward.model.bs)[nodes.blocks])
+field, near_field = (nodes.gather(v.x.array.reshape(-1, forward.model.bs)[nodes.blocks]) for v in (u, near))
 if scene.comm.rank == 0:
-    np.savez(out, u=field, X=block, ranks=scene.comm.size, method=forward.model.method)
+    np.savez(out, u=field, X=block, near=near_field, factorizations=forward.model.factorizations,
+             ranks=scene.comm.size, method=forward.model.method)
