@@ -552,8 +552,12 @@ class SolverCache:
         self._warm: dict = {}  # clamped set -> WarmStart, shared by its iterative solvers
         self._factor_need: dict = {}  # clamped set -> bytes its direct factors need (one analysis each)
 
+    @staticmethod
+    def _key(c, clamped: np.ndarray) -> tuple:
+        return tuple(np.round(np.asarray(c, float), 12)), clamped.tobytes()
+
     def get(self, c, clamped: np.ndarray) -> LinearSolver:
-        key = (tuple(np.round(np.asarray(c, float), 12)), clamped.tobytes())
+        key = self._key(c, clamped)
         if key in self._solvers:
             self._solvers.move_to_end(key)
             return self._solvers[key]
@@ -577,7 +581,7 @@ class SolverCache:
         if K(c) itself is cached. The caller destroys it after use: it is not cached,
         so it never outlives the factors it borrows."""
         c = np.asarray(c, float)
-        key = (tuple(np.round(c, 12)), clamped.tobytes())
+        key = self._key(c, clamped)
         if key in self._solvers or self.stats.method != "direct":
             return None
         best = None
