@@ -442,7 +442,7 @@ def _warnings(estimator: Estimator, theta, interrupted: bool, fit=None, post=Non
     profile = estimator.profile
     if profile.unconverged:
         out.append(f"the inner solver stopped at its iteration limit ({estimator.options.inner_maxiter}) at "
-                   f"{profile.unconverged} of {len([1 for *_, stage in profile.solved if stage != 'ci'])} material "
+                   f"{profile.unconverged} of {sum(stage != 'ci' for *_, stage in profile.solved)} material "
                    "values: raise optimizer.inner_maxiter")
     for label, value, (lo, hi) in zip(estimator.params.labels, theta, estimator.params.bounds):
         if np.isclose(value, lo, rtol=1e-3) or np.isclose(value, hi, rtol=1e-3):

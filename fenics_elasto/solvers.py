@@ -467,17 +467,7 @@ class IterativeSolver(LinearSolver):
         self.warm.remember(self.K, X.getDenseArray(), B.getDenseArray())
 
     def _krylov(self, b, x) -> None:
-        self.ksp.solve(b, x)
-        reason, its = self.ksp.getConvergedReason(), self.ksp.getIterationNumber()
-        self.stats.solves += 1
-        self.stats.iterations += its
-        if reason < 0:
-            raise SolverError(
-                f"CG + AMG stopped after {its} iterations at relative residual "
-                f"{self.ksp.getResidualNorm() / max(b.norm(), 1e-300):.2g} (rtol {self.settings.rtol:g}, "
-                f"PETSc reason {_reason_name(reason)}): use [solver] method = \"direct\", or a larger rtol")
-        x.array[self.clamped] = b.array_r[self.clamped]  # identity rows: exact, not to rtol
-        check_finite(x, "the iterative solution", self.comm)
+        _krylov(self, b, x, "CG + AMG", ": use [solver] method = \"direct\", or a larger rtol")
 
 
 class NearbySolver(LinearSolver):
@@ -503,18 +493,27 @@ class NearbySolver(LinearSolver):
 
     def solve(self, b, x):
         check_finite(b, "the right-hand side", self.comm, _BAD_INPUT)
-        self.ksp.solve(b, x)
-        reason, its = self.ksp.getConvergedReason(), self.ksp.getIterationNumber()
-        self.stats.solves += 1
-        self.stats.iterations += its
-        if reason < 0:
-            raise SolverError(f"CG preconditioned by the factors of a nearby material value stopped after {its} "
-                              f"iterations (PETSc reason {_reason_name(reason)})")
-        x.array[self.clamped] = b.array_r[self.clamped]  # identity rows: exact, not to rtol
-        check_finite(x, "the solution", self.comm)
+        _krylov(self, b, x, "CG preconditioned by the factors of a nearby material value", "")
 
     def solve_many(self, B, X):
         raise NotImplementedError("NearbySolver is for single solves (simulate); blocks pay a factorization")
+
+
+def _krylov(solver: LinearSolver, b, x, name: str, remedy: str) -> None:
+    """One CG solve of ``solver`` (IterativeSolver, NearbySolver), counted and checked:
+    a SolverError naming ``name`` (and ``remedy``) unless it converged to rtol."""
+    ksp = solver.ksp
+    ksp.solve(b, x)
+    reason, its = ksp.getConvergedReason(), ksp.getIterationNumber()
+    solver.stats.solves += 1
+    solver.stats.iterations += its
+    if reason < 0:
+        raise SolverError(
+            f"{name} stopped after {its} iterations at relative residual "
+            f"{ksp.getResidualNorm() / max(b.norm(), 1e-300):.2g} (rtol {solver.settings.rtol:g}, "
+            f"PETSc reason {_reason_name(reason)}){remedy}")
+    x.array[solver.clamped] = b.array_r[solver.clamped]  # identity rows: exact, not to rtol
+    check_finite(x, "the iterative solution", solver.comm)
 
 
 class _FactorsOf:
