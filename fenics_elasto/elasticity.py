@@ -12,6 +12,7 @@ the same clamped set in place, so the sparsity analysis is never paid twice for 
 
 from __future__ import annotations
 
+from contextlib import contextmanager
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -323,8 +324,6 @@ class ElasticModel:
         the clamped values (others ignored); ``nearby``: a single solve may borrow the
         factors of a nearby material value (solvers.NearbySolver) instead of factorizing.
         """
-        borrowed = self.solvers.nearby(c, clamped) if nearby else None
-        factor = borrowed or self.factorize(c, clamped)
         load = self.function("rhs")  # keep the Function alive: its petsc_vec borrows its memory
         b = load.x.petsc_vec
         if rhs is not None:
@@ -340,13 +339,23 @@ class ElasticModel:
         else:
             b.array[clamped] = 0.0
         u = self.function()
-        try:
+        with self.solver(c, clamped, nearby) as factor:
             factor.solve(b, u.x.petsc_vec)
-        finally:
-            if borrowed is not None:
-                borrowed.destroy()  # its own K and KSP; the factors stay with their solver
         u.x.scatter_forward()
         return u
+
+    @contextmanager
+    def solver(self, c, clamped: np.ndarray, nearby: bool = False):
+        """A solver of K(c) for the solves in the ``with`` block: the cached factorization
+        (``factorize``), or with ``nearby`` one borrowing the factors of a nearby material
+        value (solvers.NearbySolver), destroyed after the block -- its own K and KSP; the
+        factors stay with their solver."""
+        borrowed = self.solvers.nearby(c, clamped) if nearby else None
+        try:
+            yield borrowed or self.factorize(c, clamped)
+        finally:
+            if borrowed is not None:
+                borrowed.destroy()
 
     def dense(self, columns: int) -> PETSc.Mat:
         """A dense matrix with V's row layout (owned DOFs) and ``columns`` columns, zeroed."""

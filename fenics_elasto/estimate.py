@@ -228,6 +228,7 @@ class Estimator:
             log.info(f"initial values solved in full with their sensitivities, then a scan of {len(points)} "
                      f"material values on the surrogate (inner: {self.inner_name})")
             self.profile.solve(self.params.initial, "start")
+            self.problem.forward.borrow = True  # later solves on its factors where near enough (Profile.response)
             self.check_identifiable()
             start = surrogate_scan(self.surrogate, points)
             self.outer_iterations = minimize_on_surrogate(self.profile, self.surrogate, xtol, self.options.outer_maxiter,
@@ -394,6 +395,9 @@ def estimate(problem: InverseProblem, options: Options | None = None, basis: np.
         for line in describe_uncertainty(post, theta) + describe_offset(post):
             log.info(line)
     record["wall_time_s"] = round(time.perf_counter() - start, 3)
+    problem.forward.borrow = False
+    if estimator.profile.surrogate is not None:
+        estimator.profile.surrogate.destroy()
     return EstimateResult(theta, list(problem.params.labels), best.evaluation.u, forces, best.evaluation, record)
 
 

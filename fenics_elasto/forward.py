@@ -38,6 +38,10 @@ class BoundaryForward:
         self.loaded = self.model.node_set(scene.loaded, exclude_groups=scene.fixed)
         self.forward_solves = 0
         self.adjoint_solves = 0
+        # True: solves at a material value near one already factorized borrow its factors
+        # (solvers.NearbySolver) instead of factorizing -- set by an estimate whose
+        # surrogate stands in for the block solves (estimate.Estimator)
+        self.borrow = False
 
     @property
     def force_dofs(self) -> int:
@@ -66,17 +70,18 @@ class BoundaryForward:
     def from_forces(self, theta, forces: np.ndarray) -> fem.Function:
         self.forward_solves += 1
         f = self.load(forces)  # kept alive: its petsc_vec borrows its memory
-        return self.model.solve(self.coefficients(theta)[0], self.clamped, f.x.petsc_vec)
+        return self.model.solve(self.coefficients(theta)[0], self.clamped, f.x.petsc_vec, nearby=self.borrow)
 
     def from_boundary(self, theta, d: np.ndarray) -> fem.Function:
         self.forward_solves += 1
-        return self.model.solve(self.coefficients(theta)[0], self.clamped_boundary, None, prescribed=self.load(d))
+        return self.model.solve(self.coefficients(theta)[0], self.clamped_boundary, None, prescribed=self.load(d),
+                                nearby=self.borrow)
 
     def adjoint(self, theta, load: fem.Function, boundary: bool) -> fem.Function:
         """w with K w = load (w = 0 on the fixed nodes, and on the loaded ones if ``boundary``)."""
         self.adjoint_solves += 1
         clamped = self.clamped_boundary if boundary else self.clamped
-        return self.model.solve(self.coefficients(theta)[0], clamped, load.x.petsc_vec)
+        return self.model.solve(self.coefficients(theta)[0], clamped, load.x.petsc_vec, nearby=self.borrow)
 
     def reaction_forces(self, theta, u: fem.Function) -> np.ndarray:
         """F = P^T K(theta) u: the loaded-node forces that produce u."""
@@ -92,16 +97,16 @@ class BoundaryForward:
         """(owned DOFs, n_theta) du/dtheta_k at fixed boundary motion: K_D du = -dK/dtheta_k u
         on the free DOFs, du = 0 on the loaded and fixed ones (one back-solve each)."""
         c, dc = self.coefficients(theta)
-        factor = self.model.factorize(c, self.clamped_boundary)
         columns = []
-        for row in dc:
-            rhs = self.model.function("rhs")
-            self.model.apply_stiffness(row, u.x.petsc_vec, rhs.x.petsc_vec)
-            rhs.x.petsc_vec.scale(-1.0)
-            rhs.x.petsc_vec.array[self.clamped_boundary] = 0.0
-            du = self.model.function("du")
-            factor.solve(rhs.x.petsc_vec, du.x.petsc_vec)
-            columns.append(du.x.petsc_vec.array.copy())
+        with self.model.solver(c, self.clamped_boundary, self.borrow) as factor:
+            for row in dc:
+                rhs = self.model.function("rhs")
+                self.model.apply_stiffness(row, u.x.petsc_vec, rhs.x.petsc_vec)
+                rhs.x.petsc_vec.scale(-1.0)
+                rhs.x.petsc_vec.array[self.clamped_boundary] = 0.0
+                du = self.model.function("du")
+                factor.solve(rhs.x.petsc_vec, du.x.petsc_vec)
+                columns.append(du.x.petsc_vec.array.copy())
         self.forward_solves += len(columns)
         return np.stack(columns, axis=1) if columns else np.zeros((len(u.x.petsc_vec.array), 0))
 
@@ -154,10 +159,11 @@ class BoundaryForward:
         """X (owned DOFs, r): the field of each boundary mode (W: force_dofs x r; None: all).
 
         The r right-hand sides [-K W on free rows, W on the loaded rows] go through the
-        one factorization of K_D as a dense block (MatMatSolve).
+        one factorization of K_D as a dense block (MatMatSolve). With ``borrow`` a single
+        mode (reduction.missing_wall_motion's) is a single solve on nearby factors; a
+        block pays a factorization (CG would take each column alone).
         """
         c = self.coefficients(theta)[0]
-        factor = self.model.factorize(c, self.clamped_boundary)
         G = self.lift(basis)
         K = self.model.stiffness(c)
         rhs = K.matMult(G)
@@ -165,7 +171,8 @@ class BoundaryForward:
         block *= -1.0
         block[self.clamped_boundary] = G.getDenseArray()[self.clamped_boundary]
         X = self.model.dense(G.getSize()[1])
-        factor.solve_many(rhs, X)
+        with self.model.solver(c, self.clamped_boundary, self.borrow and G.getSize()[1] == 1) as factor:
+            factor.solve_many(rhs, X)
         out = X.getDenseArray().copy()
         for M in (G, K, rhs, X):
             M.destroy()

@@ -100,7 +100,10 @@ class Profile:
         if result is not None:
             return result
         check_interrupt(self.problem.scene.comm)  # under MPI every rank stops here together
-        if isinstance(self.inner, GaussNewton):
+        on_surrogate = self._on_refined_surrogate(theta) if isinstance(self.inner, GaussNewton) else None
+        if on_surrogate is not None:
+            result, dy = on_surrogate
+        elif isinstance(self.inner, GaussNewton):
             result = self.inner.solve(theta, self.response, self.basis)
         else:
             result = self.inner.solve(theta, start if start is not None else self.best().controls)
@@ -109,13 +112,45 @@ class Profile:
         # rough target its inner fit may creep to the limit without moving the answer.
         self.unconverged += not result.converged and stage != "ci"
         self.solved.append((s, result, stage))
-        if result.response is not None:  # n_theta back-solves on the factorization at hand
-            dy = self.problem.observation.rows(self.problem.forward.field_derivative(theta, result.evaluation.u))
+        if result.response is not None:
+            if on_surrogate is None:  # n_theta back-solves on the factorization at hand
+                dy = self.problem.observation.rows(self.problem.forward.field_derivative(theta, result.evaluation.u))
             self.linearisations[id(result)] = linearise(self.problem, theta, result, result.response, dy, self.inner.alpha)
             result.response = None  # kept in the linearisation only
         log.info(f"  {stage:5s} {self.params.describe(theta)}  Phi* = {result.value:.6e}  "
                  f"({result.iterations} inner iterations{'' if result.converged else ', NOT converged'})")
         return result
+
+    def _on_refined_surrogate(self, theta) -> tuple[InnerResult, np.ndarray] | None:
+        """With ``forward.borrow`` (an estimate's solves after its first) and the factors
+        of a nearby material value at hand: the inner optimum at theta and the observed
+        positions' derivative in theta at fixed controls, both from the surrogate refined
+        at theta to the solvers' tolerance on those factors (MaterialSurrogate.refine) --
+        what a full solve gives, without its factorization. None where it cannot."""
+        forward = self.problem.forward
+        if self.surrogate is None or not forward.borrow:
+            return None
+        factors = forward.model.solvers.closest(forward.coefficients(theta)[0], forward.clamped_boundary)
+        steps = self.surrogate.refine(theta, factors) if factors is not None else None
+        if steps is None:
+            return None
+        fit = self.inner.fit(self.surrogate.response(theta)[0])
+        more = self.surrogate.refine(theta, factors, fit.q)  # the derivative along the optimum's controls
+        if more is None:
+            return None
+        log.info(f"  surrogate refined at {self.params.describe(theta)} on nearby factors ({steps} + {more} block "
+                 f"back-solves, equation residual {self.surrogate.residual(theta):.1e}): no factorization")
+        J, dJ = self.surrogate.response(theta)
+        fit = self.inner.fit(J)  # the same optimum, on the space the derivatives grew (exact to tol before)
+        u = self.problem.model.function()
+        owned = self.surrogate.G.shape[0]
+        u.x.array[:owned] = self.surrogate.fields(theta) @ fit.q
+        u.x.scatter_forward()
+        evaluation = self.problem.evaluate_field(theta, u)
+        evaluation.grad_theta = np.array([np.sum(self.inner.misfit.gradient(fit.residual) * (dJk @ fit.q))
+                                          for dJk in dJ])  # the envelope gradient, as SurrogateProfile's
+        dy = np.stack([dJk @ fit.q for dJk in dJ], axis=-1)
+        return InnerResult(fit.q, evaluation, fit.iterations, fit.converged, fit.prior, J), dy
 
     def value_and_gradient(self, s) -> tuple[float, np.ndarray]:
         theta = self.params.to_theta(s)

@@ -99,6 +99,10 @@ class InverseProblem:
             ev.grad_theta = self.forward.material_gradient(theta, u, w)
         return ev
 
+    def evaluate_field(self, theta, u) -> Evaluation:
+        """Phi of a field u solved elsewhere (the surrogate's: functional.Profile), no gradients."""
+        return self._evaluate(theta, u, True, False)
+
     def evaluate_forces(self, theta, forces, gradient: bool = False) -> Evaluation:
         """Phi(theta, F) -- the paper's coordinates -- and on request its gradients."""
         return self._evaluate(theta, self.forward.from_forces(theta, forces), False, gradient)

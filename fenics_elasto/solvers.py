@@ -337,6 +337,11 @@ class DirectSolver(LinearSolver):
         self._apply(B, X)
         self._refine(B, X)
 
+    def apply_factors(self, B, X) -> None:
+        """X = F^-1 B through the factors, unrefined (a Vec, or a dense block by
+        MatMatSolve): as a preconditioner of K at a nearby material value."""
+        self._apply(B, X)
+
     def _apply(self, B, X) -> None:
         """X = F^-1 B through the factors (a Vec, or a dense block by MatMatSolve)."""
         if isinstance(B, PETSc.Vec):
@@ -496,7 +501,15 @@ class NearbySolver(LinearSolver):
         _krylov(self, b, x, "CG preconditioned by the factors of a nearby material value", "")
 
     def solve_many(self, B, X):
-        raise NotImplementedError("NearbySolver is for single solves (simulate); blocks pay a factorization")
+        """Column by column (a few columns: a response to one more mode, a derivative per
+        constant; big blocks borrow through the surrogate's refinement instead)."""
+        b, x = self.K.createVecs()
+        for j in range(B.getSize()[1]):
+            b.array[:] = B.getDenseArray()[:, j]
+            self.solve(b, x)
+            X.getDenseArray()[:, j] = x.array_r
+        b.destroy()
+        x.destroy()
 
 
 def _krylov(solver: LinearSolver, b, x, name: str, remedy: str) -> None:
@@ -523,7 +536,7 @@ class _FactorsOf:
         self.solver = solver
 
     def apply(self, pc, x, y):
-        self.solver._apply(x, y)
+        self.solver.apply_factors(x, y)
 
 
 def _reason_name(reason: int) -> str:
@@ -574,11 +587,17 @@ class SolverCache:
         return solver
 
     def nearby(self, c, clamped: np.ndarray) -> NearbySolver | None:
-        """A NearbySolver for K(c) on the factors of a cached direct solver of the same
-        clamped set whose coefficients c0 differ from c by at most NEARBY_RATIO (the
-        spread of c / c0, which bounds CG's condition number); None if there is none, or
-        if K(c) itself is cached. The caller destroys it after use: it is not cached,
-        so it never outlives the factors it borrows."""
+        """A NearbySolver for K(c) on the factors ``closest`` finds; None if there are
+        none. The caller destroys it after use: it is not cached, so it never outlives
+        the factors it borrows."""
+        base = self.closest(c, clamped)
+        return None if base is None else NearbySolver(self.stiffness(c, clamped), clamped, self.settings, self.stats, base)
+
+    def closest(self, c, clamped: np.ndarray) -> DirectSolver | None:
+        """The cached direct solver of the same clamped set whose coefficients c0 differ
+        from c by the least spread of c / c0 (which bounds the condition number of K(c)
+        preconditioned by its factors), if at most NEARBY_RATIO; None if there is none,
+        or if K(c) itself is cached."""
         c = np.asarray(c, float)
         key = self._key(c, clamped)
         if key in self._solvers or self.stats.method != "direct":
@@ -592,9 +611,7 @@ class SolverCache:
             spread = float(ratio.max() / ratio.min()) if len(ratio) else 1.0
             if spread <= NEARBY_RATIO and (best is None or spread < best[0]):
                 best = (spread, solver)
-        if best is None:
-            return None
-        return NearbySolver(self.stiffness(c, clamped), clamped, self.settings, self.stats, best[1])
+        return None if best is None else best[1]
 
     def _new(self, K: PETSc.Mat, clamped: np.ndarray) -> LinearSolver:
         if self.stats.method == "direct":

@@ -110,6 +110,8 @@ def test_train_then_reduced_estimate_from_the_command_line(tmp_path):
     parallel = json.loads((tmp_path / "result2" / "result.json").read_text())
     assert parallel["mpi_ranks"] == 2
     assert abs(parallel["materials"]["inclusion"]["E"] - result["materials"]["inclusion"]["E"]) < 1e-4 * ratio * 10
+    # the optimum made exact on the start's factors (MaterialSurrogate.refine), on 2 ranks as on 1
+    assert parallel["factorizations"] == result["factorizations"] == 1, (result["factorizations"], parallel["factorizations"])
 
 
 def test_patients_meshed_around_an_atlas_share_its_nodes(tmp_path):
