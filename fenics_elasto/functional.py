@@ -125,13 +125,14 @@ class Profile:
         """With ``forward.borrow`` (an estimate's solves after its first) and the factors
         of a nearby material value at hand: the inner optimum at theta and the observed
         positions' derivative in theta at fixed controls, both from the surrogate refined
-        at theta to the solvers' tolerance on those factors (MaterialSurrogate.refine) --
-        what a full solve gives, without its factorization. None where it cannot."""
+        at theta on those factors to a relative equation residual of REFINE_TOL
+        (MaterialSurrogate.refine) -- what a full solve gives, without its factorization.
+        None where it cannot, or where that would cost more than a factorization."""
         forward = self.problem.forward
         if self.surrogate is None or not forward.borrow:
             return None
         factors = forward.model.solvers.closest(forward.coefficients(theta)[0], forward.clamped_boundary)
-        steps = self.surrogate.refine(theta, factors) if factors is not None else None
+        steps = self.surrogate.refine(theta, factors, budget=factors.seconds) if factors is not None else None
         if steps is None:
             return None
         fit = self.inner.fit(self.surrogate.response(theta)[0])
