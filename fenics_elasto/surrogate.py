@@ -134,7 +134,7 @@ class MaterialSurrogate:
         a spread k of the coefficients (0.13 at k = 1.7, the phantom's start E 30 to its
         answer 51.5). Returns the steps (one block back-solve each), None if ``maxiter``
         of them did not reach ``tol``, or once the steps still needed at the rate seen
-        would take it past ``budget`` seconds (a factorization's: then it is cheaper)."""
+        would take longer than ``budget`` seconds (a factorization's: then it is cheaper)."""
         start, last = time.perf_counter(), None
         for step in range(maxiter + 1):
             R, relative = self.residuals(theta, q)
@@ -155,12 +155,13 @@ class MaterialSurrogate:
         return None
 
     def _over_budget(self, start: float, steps: int, rate: float, worst: float, budget: float) -> bool:
-        """Whether ``steps`` taken since ``start`` and those still needed to bring the
-        residual down by ``worst`` at ``rate`` per step would exceed ``budget`` seconds
-        (the slowest rank's clock, so that all ranks decide alike)."""
+        """Whether the steps still needed to bring the residual down by ``worst`` at
+        ``rate`` per step, each as long as the ``steps`` taken since ``start``, would
+        take longer than ``budget`` seconds (what is spent is spent either way; the
+        slowest rank's clock, so that all ranks decide alike)."""
         spent = self.comm.allreduce(time.perf_counter() - start, op=MPI.MAX)
         needed = np.inf if rate >= 1 else np.log(worst) / -np.log(rate)
-        return spent * (1 + needed / steps) > self.comm.allreduce(budget, op=MPI.MAX)
+        return spent / steps * needed > self.comm.allreduce(budget, op=MPI.MAX)
 
     def _extend(self, Y: np.ndarray) -> int:
         """Add the directions of Y (owned rows) that V does not hold yet; zero on the
@@ -219,11 +220,14 @@ class MaterialSurrogate:
         estimated constant); and each one's norm relative to its load (K G; D_k (G + V a) q):
         0 is exact."""
         c, dc, a, da = self._reduced(theta)
-        KV = combine(c, self.MV)
-        pairs = [(combine(c, self.MG), KV @ a)]
-        if q is not None:
-            pairs += [((combine(dck, self.MG) + combine(dck, self.MV) @ a) @ q[:, None], KV @ (d @ q[:, None]))
-                      for dck, d in zip(dc, da)]
+
+        def on(kept, coefficients, x):  # sum_g coefficients_g (M_g Y) x for the kept M_g Y (Y: G or V)
+            return sum(cg * (MY @ x) for cg, MY in zip(coefficients, kept) if cg != 0)
+
+        pairs = [(combine(c, self.MG), on(self.MV, c, a))]
+        if q is not None:  # along q: matrix-vector products only
+            Q, aQ = q[:, None], a @ q[:, None]
+            pairs += [(on(self.MG, dck, Q) + on(self.MV, dck, aQ), on(self.MV, c, d @ Q)) for dck, d in zip(dc, da)]
         blocks, relative = [], []
         for load, applied in pairs:
             load[~self.free] = 0.0
