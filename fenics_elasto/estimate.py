@@ -316,6 +316,13 @@ class Estimator:
             raise UserError(message)
         self.warnings.append("undetermined (allow_undetermined = true): " + message.split(": ", 1)[1].split("; fix")[0])
 
+    def close(self) -> None:
+        """Whatever happened: later solves of this problem factorize again; the surrogate's
+        own matrices go."""
+        self.problem.forward.borrow = False
+        if self.profile.surrogate is not None:
+            self.profile.surrogate.destroy()
+
     def _start_for(self, theta):
         return None if self.inner_name == "gauss-newton" else self.initial_controls(theta)
 
@@ -360,6 +367,16 @@ def estimate(problem: InverseProblem, options: Options | None = None, basis: np.
     warnings = [w for w in [check_determined(problem, basis, options, choose_inner(problem, options, basis)),
                             None if basis is None else reach_warning(held_out, basis.shape[1])] if w]
     estimator = Estimator(problem, options, basis)
+    try:
+        return _run(estimator, warnings, extent_warnings, phi_undeformed, held_out, start)
+    finally:
+        estimator.close()
+
+
+def _run(estimator: Estimator, warnings: list[str], extent_warnings: list[str], phi_undeformed: float,
+         held_out: float | None, start: float) -> EstimateResult:
+    """The estimator's run (to its best so far on Ctrl-C), its uncertainty and result.json's record."""
+    problem = estimator.problem
     interrupted = False
     try:
         estimator.run()
@@ -377,8 +394,8 @@ def estimate(problem: InverseProblem, options: Options | None = None, basis: np.
         estimator.profile_likelihood_interval(post)
     uncertainty_seconds = time.perf_counter() - clock
     fit = fit_of_bases(estimator, theta, best)
-    warnings += (estimator.warnings + _warnings(estimator, theta, interrupted, fit, post) + extent_warnings
-                 + _target_warnings(problem, best))
+    warnings = (warnings + estimator.warnings + _warnings(estimator, theta, interrupted, fit, post) + extent_warnings
+                + _target_warnings(problem, best))
     for text in warnings:
         log.warning(text)
     record = _record(estimator, theta, best, phi_undeformed, warnings, interrupted, start)
@@ -395,9 +412,6 @@ def estimate(problem: InverseProblem, options: Options | None = None, basis: np.
         for line in describe_uncertainty(post, theta) + describe_offset(post):
             log.info(line)
     record["wall_time_s"] = round(time.perf_counter() - start, 3)
-    problem.forward.borrow = False
-    if estimator.profile.surrogate is not None:
-        estimator.profile.surrogate.destroy()
     return EstimateResult(theta, list(problem.params.labels), best.evaluation.u, forces, best.evaluation, record)
 
 

@@ -4,9 +4,10 @@ Phi* is what the outer loop minimises over the materials, in s = (log E, nu). Tw
 implementations behind one interface, ``value_and_gradient(s)``:
 
 - ``Profile``: every value solved in full (a factorization of K(theta), then the inner
-  solver). Each solved theta is kept: a value within a hair of one solved before is
-  not solved again (L-BFGS-B re-evaluates its start and creeps by 1e-9 steps near the
-  optimum -- each step a factorization).
+  solver) -- with bases, after the first, made exact on the first's factors instead
+  where that is cheaper (MaterialSurrogate.refine). Each solved theta is kept: a value
+  within a hair of one solved before is not solved again (L-BFGS-B re-evaluates its
+  start and creeps by 1e-9 steps near the optimum -- each step a factorization).
 - ``SurrogateProfile``: with reduced bases, Phi* on the reduced-basis response in the
   materials (surrogate.py): J(theta) and dJ/dtheta from the solved snapshots, the
   same Gauss-Newton fit, no factorization.

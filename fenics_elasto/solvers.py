@@ -55,10 +55,10 @@ win over the defaults set here.
 
 from __future__ import annotations
 
-from collections import OrderedDict
-from dataclasses import asdict, dataclass
 import time
+from collections import OrderedDict
 from collections.abc import Callable
+from dataclasses import asdict, dataclass
 
 import numpy as np
 from mpi4py import MPI
