@@ -62,6 +62,13 @@ def linearise(problem, theta, result: InnerResult, J: np.ndarray, dy_dtheta: np.
     return Linearisation(weighted, A_q, A_s, alpha, informative)
 
 
+def envelope_gradient(misfit, fit, dJ: np.ndarray) -> np.ndarray:
+    """dPhi*/dtheta of a Gauss-Newton fit on a response J with derivatives dJ: the
+    partial derivative at the inner optimum (the prior does not depend on theta)."""
+    g = misfit.gradient(fit.residual)
+    return np.array([np.sum(g * (dJk @ fit.q)) for dJk in dJ])
+
+
 class Profile:
     """Phi*(theta) with every value solved in full; keeps every solved point."""
 
@@ -149,8 +156,7 @@ class Profile:
         u.x.array[:owned] = self.surrogate.fields(theta) @ fit.q
         u.x.scatter_forward()
         evaluation = self.problem.evaluate_field(theta, u)
-        evaluation.grad_theta = np.array([np.sum(self.inner.misfit.gradient(fit.residual) * (dJk @ fit.q))
-                                          for dJk in dJ])  # the envelope gradient, as SurrogateProfile's
+        evaluation.grad_theta = envelope_gradient(self.inner.misfit, fit, dJ)
         dy = np.stack([dJk @ fit.q for dJk in dJ], axis=-1)
         return InnerResult(fit.q, evaluation, fit.iterations, fit.converged, fit.prior, J), dy
 
@@ -205,9 +211,7 @@ class SurrogateProfile:
         J, dJ = self.profile.surrogate.response(theta)
         fit = self.fit_inner.fit(J)
         self.evaluations += 1
-        g = self.fit_inner.misfit.gradient(fit.residual)
-        grad_theta = np.array([np.sum(g * (dJk @ fit.q)) for dJk in dJ])
-        return fit.value, grad_theta * self.params.dtheta_ds(theta)
+        return fit.value, envelope_gradient(self.fit_inner.misfit, fit, dJ) * self.params.dtheta_ds(theta)
 
 
 # --------------------------------------------------------------------------- the outer loop

@@ -21,10 +21,12 @@ Every K here is sum_j c_j M_j with identity rows and columns on the clamped DOFs
   and recomputes only the coarse operators. Block right-hand sides are solved column by
   column (this PETSc has no block Krylov method), each from a warm start
   (``WarmStart``).
-* **nearby** (single solves of ``simulate`` only): a direct solver already holding the
-  factors of K(c0) for the same clamped set solves K(c) x = b by CG preconditioned with
-  those factors when c/c0 stays within ``NEARBY_RATIO`` (``NearbySolver``): a handful of
-  back-solves instead of a new factorization.
+* **nearby** (``simulate``'s single solve, an estimate's solves after its first): a direct
+  solver already holding the factors of K(c0) for the same clamped set solves K(c) x = b
+  by CG preconditioned with those factors when c/c0 stays within ``NEARBY_RATIO``
+  (``NearbySolver``): a handful of back-solves instead of a new factorization. The same
+  factors (``SolverCache.closest``, ``DirectSolver.apply_factors``) precondition the
+  reduced estimate's refinement at its optimum (surrogate.MaterialSurrogate.refine).
 * **auto**: direct up to ``DIRECT_LIMIT`` DOFs, iterative beyond (the crossover measured
   by benchmarks/scale.py on a 2-core, 24 GB machine).
 
@@ -333,20 +335,17 @@ class DirectSolver(LinearSolver):
         return self.ksp.getPC().getFactorMatrix()
 
     def solve(self, b, x):
-        self._apply(b, x)
+        self.apply_factors(b, x)
         self._refine(b, x)
 
     def solve_many(self, B, X):
-        self._apply(B, X)
+        self.apply_factors(B, X)
         self._refine(B, X)
 
     def apply_factors(self, B, X) -> None:
         """X = F^-1 B through the factors, unrefined (a Vec, or a dense block by
-        MatMatSolve): as a preconditioner of K at a nearby material value."""
-        self._apply(B, X)
-
-    def _apply(self, B, X) -> None:
-        """X = F^-1 B through the factors (a Vec, or a dense block by MatMatSolve)."""
+        MatMatSolve): the first step of ``solve``, and a preconditioner of K at a nearby
+        material value."""
         if isinstance(B, PETSc.Vec):
             self.ksp.solve(B, X)
             if self.ksp.getConvergedReason() < 0:
@@ -371,7 +370,7 @@ class DirectSolver(LinearSolver):
             if not open_.any() or slow or step == REFINEMENTS:
                 break
             D = R.duplicate()
-            self._apply(R, D)
+            self.apply_factors(R, D)
             X.axpy(1.0, D)
             for M in (D, R):
                 M.destroy()
