@@ -26,8 +26,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from fenics_elasto.errors import UserError, require
-from fenics_elasto.functional import (Profile, SurrogateProfile, minimize_on_surrogate, minimize_profile,
-                                     surrogate_scan)
+from fenics_elasto.functional import (Profile, SurrogateProfile, linearise_profiled, minimize_on_surrogate,
+                                     minimize_profile, surrogate_scan)
 from fenics_elasto.logs import log
 from fenics_elasto.inner import GaussNewton, InnerResult, LBFGS
 from fenics_elasto.interrupts import Interrupted
@@ -240,14 +240,29 @@ class Estimator:
         floor = self.problem.misfit.roughness() if noise is None else 0.0
         return posterior_at(self.profile, result or self.profile.best(), noise, floor)
 
+    def linearise_answer(self, theta, best: InnerResult) -> None:
+        """The L-BFGS inner solvers keep no response of the controls: the answer's
+        Linearisation with the controls profiled out by LSQR (functional.linearise_profiled:
+        two solves per step on the answer's factorization, less than one inner fit's cost)."""
+        if self.profile.linearisation(best) is not None:
+            return
+        forward = self.problem.forward
+        start, solves = time.perf_counter(), (forward.forward_solves, forward.adjoint_solves)
+        self.profile.linearisations[id(best)] = linearise_profiled(self.problem, theta, best, self.options.anchor)
+        log.info(f"answer linearised, the force space profiled out by LSQR ({forward.forward_solves - solves[0]} "
+                 f"forward and {forward.adjoint_solves - solves[1]} adjoint solves, {time.perf_counter() - start:.1f} s)")
+
     def profile_likelihood_interval(self, post: Posterior) -> None:
         """The profile-likelihood 95 % interval of a single estimated constant, in place
         of the Laplace one: on the surrogate (dense algebra) with bases, by full solves on
         small meshes (PROFILE_DOFS), not at all on big ones without bases (each value a
-        factorization). Where Phi* is jagged on the surrogate, the inner fit at the answer
+        factorization and an inner fit -- nor with the L-BFGS inner solvers, whose fits
+        take tens of solves each). Where Phi* is jagged on the surrogate, the inner fit at the answer
         is re-run from the other fits met on the way: minima that far apart in Phi* raise
         the interval's threshold by as much (posterior.jitter_noise)."""
-        if len(self.params) != 1 or (self.surrogate is None and self.problem.model.num_dofs > PROFILE_DOFS):
+        full_solves = self.surrogate is None
+        if len(self.params) != 1 or (full_solves and (self.problem.model.num_dofs > PROFILE_DOFS
+                                                      or self.inner_name != "gauss-newton")):
             return
         fits = []  # (s, fit): the surrogate's inner optima met along the way, starts for the spread
         if self.surrogate is not None:
@@ -387,6 +402,8 @@ def _run(estimator: Estimator, warnings: list[str], extent_warnings: list[str], 
         log.info("interrupted: writing the best result so far")
     theta, best, forces = estimator.final()
     clock = time.perf_counter()
+    if not interrupted:
+        estimator.linearise_answer(theta, best)
     post = estimator.posterior(best)
     if post is not None:  # the final answer's only: the set-up check's posterior has no use for it
         post.offset = target_offset(problem.misfit, estimator.profile.linearisation(best), best.evaluation)
@@ -401,8 +418,8 @@ def _run(estimator: Estimator, warnings: list[str], extent_warnings: list[str], 
     record = _record(estimator, theta, best, phi_undeformed, warnings, interrupted, start)
     record["bases_fit"] = fit if fit is None else {**fit, "held_out_energy": held_out}
     record["uncertainty"] = post.record() if post is not None else {
-        "note": f"not computed: the {estimator.inner_name} inner solver gives no response of the controls "
-                "(use reduced bases, or inner = \"gauss-newton\")"}
+        "note": f"not computed: interrupted, and the {estimator.inner_name} inner solver keeps no response of the "
+                "controls (profiling them out would take another inner fit's solves)"}
     if post is not None:  # what the answer's posterior, offset and profile interval cost
         record["uncertainty"]["seconds"] = round(uncertainty_seconds, 3)
     smoothing = problem.misfit.smoothing() if problem.misfit is not None else None

@@ -88,16 +88,24 @@ class InverseProblem:
         residual = self.misfit.residual(y)
         ev = Evaluation(self.misfit.cost(residual), u, y, residual)
         if gradient:
-            load = self.observation.transpose(self.misfit.gradient(residual))
-            w = self.forward.adjoint(theta, load, boundary)
-            if boundary:  # dPhi/dd = (O^T g)_B - (K w)_B
-                Kw = self.model.function("Kw")
-                self.model.apply_stiffness(self.forward.coefficients(theta)[0], w.x.petsc_vec, Kw.x.petsc_vec)
-                ev.grad_controls = self.forward.on_loaded(load) - self.forward.on_loaded(Kw)
-            else:  # dPhi/dF = P^T w
-                ev.grad_controls = self.forward.on_loaded(w)
+            ev.grad_controls, w = self.pull_back(theta, self.misfit.gradient(residual), boundary)
             ev.grad_theta = self.forward.material_gradient(theta, u, w)
         return ev
+
+    def pull_back(self, theta, g: np.ndarray, boundary: bool = True) -> tuple[np.ndarray, object]:
+        """(dPhi/dcontrols, w) for dPhi/dy = g (n_obs, gdim): one adjoint solve. Linear in
+        g: with boundary motion as the controls it is the transpose of ``observed_motion``."""
+        load = self.observation.transpose(g)
+        w = self.forward.adjoint(theta, load, boundary)
+        if not boundary:  # dPhi/dF = P^T w
+            return self.forward.on_loaded(w), w
+        Kw = self.model.function("Kw")  # dPhi/dd = (O^T g)_B - (K w)_B
+        self.model.apply_stiffness(self.forward.coefficients(theta)[0], w.x.petsc_vec, Kw.x.petsc_vec)
+        return self.forward.on_loaded(load) - self.forward.on_loaded(Kw), w
+
+    def observed_motion(self, theta, d: np.ndarray) -> np.ndarray:
+        """(n_obs, gdim) O u of the loaded boundary's motion d: one solve, linear in d."""
+        return self.observation.values(self.forward.from_boundary(theta, d))
 
     def evaluate_field(self, theta, u) -> Evaluation:
         """Phi of a field u solved elsewhere (the surrogate's: functional.Profile), no gradients."""

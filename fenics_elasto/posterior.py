@@ -199,21 +199,15 @@ predicts -0.85 %). None
 def laplace(lin: Linearisation, labels, s, is_E, noise: float | None = None, floor: float = 0.0) -> Posterior:
     """The posterior of s from a Linearisation at the optimum (noise: known std or None;
     ``floor``: the noise the targets themselves show, which the residual underestimates)."""
-    A = np.hstack([lin.A_q, lin.A_s])
-    p = lin.A_q.shape[1]
-    prior = np.r_[np.full(p, lin.prior), np.zeros(lin.A_s.shape[1])]
-    gram = A.T @ A
-    H = gram + np.diag(prior)
-    hat = np.trace(np.linalg.lstsq(H, gram, rcond=None)[0])  # tr(A H^-1 A^T): fitted parameters
+    B, schur = lin.profiled()
+    # tr(A H^-1 A^T), the fitted parameters: the controls' share plus tr(S^-1 B^T B)
+    hat = lin.fitted_controls() + np.trace(np.linalg.lstsq(schur, B.T @ B, rcond=None)[0])
     dof = max(lin.informative - hat, 1.0)
     residual_std = float(np.sqrt(np.sum(lin.residual**2) / dof))
     noise_std = float(noise) if noise is not None else max(residual_std, floor)
-    Hqq = lin.A_q.T @ lin.A_q + lin.prior * np.eye(p)
-    coupling = lin.A_q.T @ lin.A_s
-    own = lin.A_s.T @ lin.A_s
-    schur = own - coupling.T @ np.linalg.lstsq(Hqq, coupling, rcond=None)[0]
     covariance = noise_std**2 * _inverse(schur)
-    separable = np.diag(schur) / np.where(np.diag(own) > 0, np.diag(own), 1.0)
+    own = lin.sensitivity()
+    separable = np.diag(schur) / np.where(own > 0, own, 1.0)
     source = "given" if noise is not None else "the target's roughness" if floor > residual_std else "the residual"
     return Posterior(list(labels), np.asarray(s, float), covariance, noise_std, source, float(dof),
                      np.asarray(is_E, bool), separable, residual_std)
@@ -246,10 +240,8 @@ def _profiled(lin: Linearisation) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     inverse Schur complement S = A_s^T B, infinite along undetermined constants -- zeroed
     for products (then marked inf or NaN by the caller, not inf * 0). A change de of the
     residual moves the optimum by ds = -S^-1 B^T de."""
-    p = lin.A_q.shape[1]
-    Hqq = lin.A_q.T @ lin.A_q + lin.prior * np.eye(p)
-    B = lin.A_s - lin.A_q @ np.linalg.lstsq(Hqq, lin.A_q.T @ lin.A_s, rcond=None)[0]
-    S_inv = _inverse(lin.A_s.T @ B)
+    B, schur = lin.profiled()
+    S_inv = _inverse(schur)
     return B, S_inv, np.where(np.isfinite(S_inv), S_inv, 0.0)
 
 
