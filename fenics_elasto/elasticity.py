@@ -124,6 +124,9 @@ class NodeSet:
 # --------------------------------------------------------------------------- the model
 
 
+SUMS_KEPT = 3  # ElasticModel.apply_stiffness: K and the derivatives of two estimated constants
+
+
 def stiffness_quadrature(V: fem.FunctionSpace) -> dict:
     """The quadrature of the stiffness forms on curved cells (geometry of degree g > 1;
     straight cells keep UFL's rule, exact there). For P_k elements in d dimensions, a rule
@@ -156,7 +159,7 @@ class ElasticModel:
         self.settings = solver or SolverSettings.from_config(scene.config.get("solver"))
         self.stats = SolverStats(self.settings.method_for(self.num_dofs))
         self._cache_size = cache_size
-        self._summed = None  # (c, unconstrained K(c)): apply_stiffness's latest sum
+        self._sums: dict[tuple, PETSc.Mat] = {}  # c -> unconstrained sum_j c_j M_j: apply_stiffness's latest
 
     @property
     def method(self) -> str:
@@ -254,35 +257,27 @@ class ElasticModel:
         return combine(c, self.terms)
 
     def apply_stiffness(self, c, x: PETSc.Vec, out: PETSc.Vec) -> PETSc.Vec:
-        """out = (sum_j c_j M_j) x. With the direct method the sum for the latest c is kept
-        (one product instead of one per term: every inner iteration of a full-space fit
-        needs two; the matrix is small beside the factors); the iterative method, meant
-        for meshes where memory binds, forms no sum."""
+        """out = (sum_j c_j M_j) x -- K(theta) x, or with c = dc/dtheta_k its derivative.
+        With the direct method the sums for the latest SUMS_KEPT c are kept (one product
+        instead of one per term: every gradient of a full-space fit needs K and each
+        dK/dtheta_k; the matrices are small beside the factors); the iterative method,
+        meant for meshes where memory binds, forms no sum and skips zero coefficients."""
         if self.method == "direct":
             key = tuple(np.asarray(c, float))
-            if self._summed is None or self._summed[0] != key:
-                if self._summed is not None:
-                    self._summed[1].destroy()
-                self._summed = (key, self.stiffness(c))
-            self._summed[1].mult(x, out)
+            K = self._sums.pop(key, None) or self.stiffness(c)
+            self._sums[key] = K  # the latest last
+            while len(self._sums) > SUMS_KEPT:
+                self._sums.pop(next(iter(self._sums))).destroy()
+            K.mult(x, out)
             return out
         out.zeroEntries()
         tmp = out.duplicate()
         for cj, M in zip(c, self.terms):
-            M.mult(x, tmp)
-            out.axpy(cj, tmp)
+            if cj != 0.0:
+                M.mult(x, tmp)
+                out.axpy(cj, tmp)
         tmp.destroy()
         return out
-
-    def term_products(self, u: PETSc.Vec, w: PETSc.Vec) -> np.ndarray:
-        """w^T M_j u for every term: with dc/dtheta, the derivative w^T dK/dtheta u."""
-        tmp = u.duplicate()
-        products = []
-        for M in self.terms:
-            M.mult(u, tmp)
-            products.append(w.dot(tmp))
-        tmp.destroy()
-        return np.array(products)
 
     def constrained_stiffness(self, c, clamped: np.ndarray, out: PETSc.Mat | None = None) -> PETSc.Mat:
         """K = sum_j c_j M_j with identity rows and columns on the clamped DOFs, into

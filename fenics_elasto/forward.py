@@ -91,7 +91,9 @@ class BoundaryForward:
 
     def material_gradient(self, theta, u: fem.Function, w: fem.Function) -> np.ndarray:
         """-w^T dK/dtheta_k u for each estimated constant."""
-        return -self.coefficients(theta)[1] @ self.model.term_products(u.x.petsc_vec, w.x.petsc_vec)
+        dKu = self.model.function("dKu")
+        return -np.array([w.x.petsc_vec.dot(self.model.apply_stiffness(row, u.x.petsc_vec, dKu.x.petsc_vec))
+                          for row in self.coefficients(theta)[1]])
 
     def field_derivative(self, theta, u: fem.Function) -> np.ndarray:
         """(owned DOFs, n_theta) du/dtheta_k at fixed boundary motion: K_D du = -dK/dtheta_k u
