@@ -96,6 +96,16 @@ def test_estimate_cli_outputs_and_two_ranks(letter_source, tmp_path):
     # The forces hold the top down and sideways (the target moved it by (+x, -y)).
     assert forces[:, 2].sum() > 0 and forces[:, 3].sum() < 0
     assert (out / "surface.vtp").exists() and (out / "displacement.bp").exists()
+    # The full force space with L-BFGS profiles its controls out by LSQR on distributed
+    # solves: 2 ranks report the serial sigma.
+    sigma = {}
+    for ranks in (1, 2):
+        out = tmp_path / f"lbfgs{ranks}"
+        proc = run_cli("estimate", letter_source, "--out", out, "--set", f"target.surface='{target}'",
+                       "--set", "optimizer.inner='lbfgs'", mpi=ranks)
+        assert proc.returncode == 0, proc.stderr[-2000:]
+        sigma[ranks] = json.loads((out / "result.json").read_text())["uncertainty"]["letter.nu"]["std"]
+    assert sigma[1] > 0 and abs(sigma[2] - sigma[1]) < 1e-3 * sigma[1], sigma
 
 
 @pytest.mark.slow
