@@ -20,7 +20,8 @@ envelope theorem dPhi*/dtheta is the partial derivative at the inner optimum.
 ``linearise`` gives what the Gauss-Newton Hessian of Phi* needs (posterior.py): the
 residual's Jacobians in the controls and in s at an inner optimum, weighted by the
 noise model's rows (misfit.statistical_rows: a surface point is measured along its
-normal only).
+normal only). ``linearise_profiled`` gives the same without the controls' Jacobian
+(the full force space with L-BFGS), profiling the controls out by LSQR on solves.
 """
 
 from __future__ import annotations

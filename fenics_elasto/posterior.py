@@ -165,8 +165,9 @@ class Posterior:
 
 
 def posterior_at(profile, result, noise: float | None = None, floor: float = 0.0) -> Posterior | None:
-    """The posterior at one of the profile's solves, where the inner solver gave the
-    controls' response (Gauss-Newton); None otherwise."""
+    """The posterior at one of the profile's solves, where it has a Linearisation (every
+    Gauss-Newton solve; with L-BFGS the answer, once Estimator.linearise_answer made
+    one); None otherwise."""
     lin = profile.linearisation(result)
     if lin is None:
         return None
