@@ -5,7 +5,7 @@ tests/independent.py), run through the command line with its default settings.
     python benchmarks/independent.py [--cases letter,inclusion,phantom] [--out DIR]
                                      [--set KEY=VALUE ...] [--letter-nu 0.1,0.25,0.4,0.49]
                                      [--ratios 2,5,10] [--inclusion-top A,B,C,D]
-                                     [--prostate-E 25,50,75]
+                                     [--prostate-E 25,50,75] [--synthetic 120,80]
 
 Cases: the letter A (nu estimated; the built-in source `fenics-elasto mesh letter-a`),
 a user's own inclusion scene (E ratio estimated; straight-sided source at h = 0.35)
@@ -127,6 +127,8 @@ def main():
     parser.add_argument("--inclusion-top", type=numbers, default=list(ind.INCLUSION_TOP),
                         help="a,b,c,d: the top moves by (a + b x, c + d x^2)")
     parser.add_argument("--prostate-E", type=numbers, default=[25.0, 50.0, 75.0])
+    parser.add_argument("--synthetic", type=numbers, default=[120, 80],
+                        help="N,R: the phantom's bases from `train --synthetic N --rank R`")
     args = parser.parse_args()
     cases = args.cases.split(",")
     unknown = set(cases) - {"letter", "inclusion", "phantom"}
@@ -138,7 +140,7 @@ def main():
           "|---|---|---|---|---|---|---|---|", flush=True)
     makers = {"letter": lambda: letter_rows(out, args.letter_nu, args.set),
               "inclusion": lambda: inclusion_rows(out, args.ratios, args.set, args.inclusion_top),
-              "phantom": lambda: phantom_rows(out, args.prostate_E, args.set)}
+              "phantom": lambda: phantom_rows(out, args.prostate_E, args.set, tuple(map(int, args.synthetic)))}
     for case in cases:
         for line in makers[case]():
             print(line, flush=True)
