@@ -27,7 +27,7 @@ normal only). ``linearise_profiled`` gives the same without the controls' Jacobi
 from __future__ import annotations
 
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.optimize import minimize
@@ -50,20 +50,28 @@ class Linearisation:
     prior: float  # alpha: the prior's curvature on every control
     informative: int  # residual components the target constrains (1 per surface point on a face, ...)
 
+    _eliminated: tuple | None = field(default=None, init=False, repr=False, compare=False)
+
     def profiled(self) -> tuple[np.ndarray, np.ndarray]:
         """(B, S): the sensitivity in s with the controls profiled out,
         B = A_s - A_q X with X = (A_q^T A_q + alpha I)^-1 A_q^T A_s, and the Schur
         complement S = A_s^T B = B^T B + alpha X^T X (the Gauss-Newton Hessian of Phi* in s)."""
-        p = self.A_q.shape[1]
-        H = self.A_q.T @ self.A_q + self.prior * np.eye(p)
-        B = self.A_s - self.A_q @ np.linalg.lstsq(H, self.A_q.T @ self.A_s, rcond=None)[0]
-        return B, self.A_s.T @ B
+        return self._eliminate()[:2]
 
     def fitted_controls(self) -> float:
         """The controls' share of the hat matrix's trace, tr(A_q (A_q^T A_q + alpha I)^-1 A_q^T)."""
-        p = self.A_q.shape[1]
-        gram = self.A_q.T @ self.A_q
-        return float(np.trace(np.linalg.lstsq(gram + self.prior * np.eye(p), gram, rcond=None)[0]))
+        return self._eliminate()[2]
+
+    def _eliminate(self) -> tuple[np.ndarray, np.ndarray, float]:
+        """(B, S, the controls' hat trace) from one solve with A_q^T A_q + alpha I, once:
+        a posterior asks for them three times (laplace, the patch covariance, the offset)."""
+        if self._eliminated is None:
+            p, n = self.A_q.shape[1], self.A_s.shape[1]
+            gram = self.A_q.T @ self.A_q
+            X = np.linalg.lstsq(gram + self.prior * np.eye(p), np.hstack([self.A_q.T @ self.A_s, gram]), rcond=None)[0]
+            B = self.A_s - self.A_q @ X[:, :n]
+            self._eliminated = (B, self.A_s.T @ B, float(np.trace(X[:, n:])))
+        return self._eliminated
 
     def sensitivity(self) -> np.ndarray:
         """diag(A_s^T A_s): each constant's own effect on the data, controls fixed."""
