@@ -15,8 +15,9 @@ spec naming them into a gmsh scene and a ready ``problem.toml``:
    (``classifySurfaces`` + ``createGeometry``), so gmsh remeshes them at the sizes asked
    for -- ``organ_size`` at regions and cavities, growing to ``size`` in the body (a
    Distance + Threshold field). The quadratic elements' boundary midpoints go onto the
-   input surfaces (curved geometry); an element that this would invert keeps straight
-   edges (checked with gmsh's Jacobian, counted in the output).
+   input surfaces (curved geometry); an element that this folds over is untangled by
+   gmsh's high-order optimisation (boundary nodes fixed), and one still folded keeps
+   straight edges (checked with gmsh's Jacobian, counted in the output).
 5. ``problem_toml`` writes every group, a default material per region and ready
    ``[boundary]`` lists.
 
@@ -43,7 +44,7 @@ from fenics_elasto.anatomy_repair import (Shell, closed_shells, cut_by_planes, e
 from fenics_elasto.budget import CELLS_PER_VOLUME, check_mesh_cost
 from fenics_elasto.config import read_scene_spec
 from fenics_elasto.errors import UserError, require
-from fenics_elasto.gmsh_models import fresh_gmsh_model
+from fenics_elasto.gmsh_models import fresh_gmsh_model, untangle
 from fenics_elasto.logs import log
 from fenics_elasto.meshcheck import check_mesh
 from fenics_elasto.surface import quiet_vtk
@@ -373,8 +374,8 @@ def _curve(gmsh, shells: list[Shell], owned: list) -> int:
     """Quadratic elements whose boundary-edge midpoints lie on the input surfaces: the
     straight midpoint moved to the closest point of the shell's triangulation (gmsh's
     own placement, the midpoint in the surface's parameter plane, lands far off where
-    the harmonic map stretches and inverts elements). An element this would invert
-    keeps its straight edges. Returns how many elements were kept straight."""
+    the harmonic map stretches and inverts elements). Elements this folds over are
+    untangled (gmsh_models.untangle). Returns how many were kept straight."""
     import igl
 
     gmsh.option.setNumber("Mesh.SecondOrderLinear", 1)
@@ -391,7 +392,7 @@ def _curve(gmsh, shells: list[Shell], owned: list) -> int:
             gmsh.model.mesh.setNode(int(node), point, [])
         if len(shell.features):
             _curve_features(gmsh, shell, tags, position)
-    return _straighten_inverted(gmsh)
+    return untangle(gmsh)
 
 
 def _curve_features(gmsh, shell: Shell, surfaces: list[int], position: np.ndarray) -> None:
@@ -409,23 +410,6 @@ def _curve_features(gmsh, shell: Shell, surfaces: list[int], position: np.ndarra
     closest = igl.point_mesh_squared_distance(straight, shell.points, shell.features)[2]
     for node, point in zip(lines[on_feature, 2], closest):
         gmsh.model.mesh.setNode(int(node), point, [])
-
-
-def _straighten_inverted(gmsh) -> int:
-    """Put the edge midpoints of inverted tetrahedra back on their straight edges."""
-    straightened = 0
-    for _ in range(3):
-        tets, nodes = gmsh.model.mesh.getElementsByType(11)
-        bad = np.asarray(gmsh.model.mesh.getElementQualities(tets, "minDetJac")) <= 0
-        if not bad.any():
-            break
-        straightened += int(bad.sum())
-        position = _node_positions(gmsh)
-        nodes = nodes.reshape(-1, 10).astype(np.int64)[bad]
-        for a, b, m in ((0, 1, 4), (1, 2, 5), (2, 0, 6), (3, 0, 7), (2, 3, 8), (3, 1, 9)):  # gmsh's 10-node tet
-            for node, point in zip(nodes[:, m], (position[nodes[:, a]] + position[nodes[:, b]]) / 2):
-                gmsh.model.mesh.setNode(int(node), point, [])
-    return straightened
 
 
 def mesh_shells(shells: list[Shell], parents: list, patches: list[Patch], size: float, organ_size: float,

@@ -17,7 +17,7 @@ import numpy as np
 
 from fenics_elasto.errors import UserError, require
 from fenics_elasto.interrupts import restore_handlers
-from fenics_elasto.meshcheck import check_mesh
+from fenics_elasto.meshcheck import check_mesh, folds
 
 
 def fresh_gmsh_model(name: str):
@@ -144,6 +144,39 @@ def save(gmsh, path: Path) -> None:
     gmsh.option.setNumber("Mesh.MshFileVersion", 4.1)
     gmsh.option.setNumber("Mesh.SaveAll", 0)
     gmsh.write(str(path))
+
+
+TET10_EDGES = ((0, 1, 4), (1, 2, 5), (2, 0, 6), (3, 0, 7), (2, 3, 8), (3, 1, 9))  # gmsh's 10-node tet: ends, midpoint
+
+
+def folded_tetrahedra(gmsh) -> tuple[np.ndarray, np.ndarray]:
+    """(tags, node rows) of the 10-node tetrahedra that fold over (meshcheck.folds)."""
+    tets, nodes = gmsh.model.mesh.getElementsByType(11)
+    folded = folds(gmsh, tets)
+    return np.asarray(tets, np.int64)[folded], np.asarray(nodes, np.int64).reshape(-1, 10)[folded]
+
+
+def untangle(gmsh, optimise: bool = True) -> int:
+    """Unfold the curved tetrahedra that curving a mesh's boundary folded over (a thin
+    cell at a curved wall whose midpoint passes its opposite face): gmsh's high-order
+    optimisation of a layer around each, boundary nodes fixed (``optimise``), then the
+    edge midpoints of any cell still folded put back on its straight edges (its walls
+    then follow their chords there). Returns how many cells were straightened."""
+    if optimise and len(folded_tetrahedra(gmsh)[0]):
+        gmsh.option.setNumber("Mesh.HighOrderNumLayers", 1)
+        gmsh.option.setNumber("Mesh.HighOrderFixBoundaryNodes", 1)
+        gmsh.model.mesh.optimize("HighOrder")
+    straightened = 0
+    for _ in range(3):  # straightening one cell's edges can fold a neighbour sharing them
+        _, nodes = folded_tetrahedra(gmsh)
+        if not len(nodes):
+            break
+        straightened += len(nodes)
+        position = node_positions(gmsh)
+        for a, b, m in TET10_EDGES:
+            for node, point in zip(nodes[:, m], (position[nodes[:, a]] + position[nodes[:, b]]) / 2):
+                gmsh.model.mesh.setNode(int(node), point, [])
+    return straightened
 
 
 def node_positions(gmsh) -> np.ndarray:

@@ -9,7 +9,7 @@ in one line naming the file and the group, a mesh that is not a simplicial mesh 
 body with its boundary groups on it:
 
 - the cells (the cell physical groups' elements) are triangles (2D) or tetrahedra
-  (3D) of one type and order, none repeated, none flat;
+  (3D) of one type and order, none repeated, none flat, no curved one folded over;
 - every facet of a cell belongs to one or two cells, and where two, they lie on
   opposite sides of it (else the cells overlap). With that, the boundary (the facets
   of one cell) is closed: the boundary of a boundary is empty;
@@ -57,6 +57,7 @@ def check_mesh(gmsh, label: str, tdim: int) -> None:
     cells, etype = _cells(gmsh, label, tdim)
     corners = cells[:, : tdim + 1]
     _check_cells(label, corners, position)
+    _check_curved(gmsh, label, tdim, etype, position)
     facets, sides = _facets(corners, position)
     keys = _check_facets(label, facets, sides, position)
     _check_facet_groups(gmsh, label, tdim, etype, keys)
@@ -98,6 +99,33 @@ def _check_cells(label: str, corners: np.ndarray, position: np.ndarray) -> None:
     flat = np.flatnonzero(measure <= FLAT * scale)
     if len(flat):
         raise UserError(f"{label}: {len(flat)} flat (zero-volume) cell(s), e.g. at {_where(position, corners[flat[0]])}")
+
+
+def folds(gmsh, tags) -> np.ndarray:
+    """Which of the elements ``tags`` fold over: det J changes sign inside (gmsh's
+    bounds of it over each whole element)."""
+    if not len(tags):
+        return np.zeros(0, bool)
+    low, high = (np.asarray(gmsh.model.mesh.getElementQualities(tags, q)) for q in ("minDetJac", "maxDetJac"))
+    return (low <= 0) & (high >= 0)
+
+
+def _check_curved(gmsh, label: str, tdim: int, etype: int, position: np.ndarray) -> None:
+    """No curved cell folds over: its Jacobian determinant keeps one sign (gmsh's bounds
+    of det J over the whole cell; either sign is fine -- an inverted cell is merely
+    numbered the other way round). A folded cell's stiffness is wrong while every solve
+    still succeeds, and its children overlap when the mesh is refined."""
+    if gmsh.model.mesh.getElementProperties(etype)[2] == 1:
+        return  # straight-sided: _check_cells' volumes say it all
+    for _, tag in gmsh.model.getPhysicalGroups(tdim):
+        for entity in gmsh.model.getEntitiesForPhysicalGroup(tdim, tag):
+            tags = gmsh.model.mesh.getElementsByType(etype, entity)[0]
+            folded = np.asarray(tags)[folds(gmsh, tags)]
+            if len(folded):
+                nodes = np.asarray(gmsh.model.mesh.getElement(int(folded[0]))[1], np.int64)
+                raise UserError(f"{label}: {len(folded)} curved cell(s) fold over (their Jacobian changes sign), "
+                                f"e.g. at {_where(position, nodes)}; untangle them (gmsh: Mesh.HighOrderOptimize "
+                                "= 1) or mesh with straight-sided cells")
 
 
 def _facets(corners: np.ndarray, position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

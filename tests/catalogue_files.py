@@ -83,6 +83,29 @@ def cube(folder: Path, name: str, points=CORNERS, cells=None, facets=None, other
     return problem
 
 
+TET10_EDGES = [(0, 1), (1, 2), (2, 0), (3, 0), (3, 2), (3, 1)]  # gmsh's order of a 10-node tet's edge nodes
+TRIANGLE6_EDGES = [(0, 1), (1, 2), (2, 0)]
+
+
+def quadratic_cube(folder: Path, name: str, diagonal_midpoint=(0.5, 0.5, 0.5)) -> Path:
+    """The cube with 10-node tets and 6-node facets, straight-sided but for the midpoint
+    node of the diagonal 0-7 that every tet holds, placed at ``diagonal_midpoint``."""
+    faces = cube_faces()
+    edges = np.unique(np.sort(np.vstack([TETS[:, pair] for pair in TET10_EDGES]), axis=1), axis=0)
+    points = np.vstack([CORNERS, CORNERS[edges].mean(axis=1)])
+    points[len(CORNERS) + np.flatnonzero((edges == [0, 7]).all(axis=1))[0]] = diagonal_midpoint
+    node = {tuple(e): len(CORNERS) + i for i, e in enumerate(edges)}
+
+    def rows(corners, pairs):
+        return np.array([[*c, *(node[tuple(sorted((c[a], c[b])))] for a, b in pairs)] for c in corners])
+
+    write_msh(folder / f"{name}.msh", points, {"body": (11, rows(TETS, TET10_EDGES))},
+              {g: (9, rows(faces[g], TRIANGLE6_EDGES)) for g in ("bottom", "top", "sides")})
+    problem = folder / f"{name}.toml"
+    problem.write_text(CUBE_TOML.format(mesh=f"{name}.msh", extra=""))
+    return problem
+
+
 def bad_cubes(folder: Path) -> dict[str, Path]:
     """Problem files of cube variants, each bad in one way (``good``: the control)."""
     faces = cube_faces()
@@ -104,6 +127,9 @@ def bad_cubes(folder: Path) -> dict[str, Path]:
         "orphan": cube(folder, "orphan", inside),
         "off_mesh": cube(folder, "off_mesh", facets={**groups, "sides": (2, np.vstack([faces["sides"], [[0, 5, 6]]]))}),
         "facet_quads": cube(folder, "facet_quads", facets={**groups, "top": (3, [[4, 5, 7, 6]])}),
+        "quadratic": quadratic_cube(folder, "quadratic"),
+        # the diagonal's midpoint pulled out through a face: two tets' Jacobians change sign inside
+        "folded": quadratic_cube(folder, "folded", (1.4, 0.5, 0.5)),
     }
 
 

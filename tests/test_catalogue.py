@@ -290,10 +290,12 @@ def test_problem_files_and_overrides(env, capfd, row):
 
 # =========================================================================== meshes
 
-CUBES = ["no_cells", "mixed", "hexahedra", "twice", "flat", "overlap", "crowded", "orphan", "off_mesh", "facet_quads"]
+CUBES = ["no_cells", "mixed", "hexahedra", "twice", "flat", "overlap", "crowded", "orphan", "off_mesh", "facet_quads",
+         "folded"]
 CUBE_WORDS = {"no_cells": ("'body'", "no cells"), "mixed": ("mixed",), "hexahedra": ("Hexahedron", "tetrahedra"),
               "twice": ("more than once",), "flat": ("flat",), "overlap": ("overlap",), "crowded": ("more than two",),
-              "orphan": ("no cell",), "off_mesh": ("'sides'", "not facets"), "facet_quads": ("'top'", "Quadrilateral")}
+              "orphan": ("no cell",), "off_mesh": ("'sides'", "not facets"), "facet_quads": ("'top'", "Quadrilateral"),
+              "folded": ("curved cell(s) fold over",)}
 
 
 def msh_problem(e, name: str, mesh_path: Path) -> Path:
@@ -363,9 +365,11 @@ def test_meshes_dolfinx_must_not_get(env, capfd, row):
     run(row, row.argv(env), capfd)
 
 
-def test_the_cube_itself_is_fine(env, capfd):
-    """The control of the cube rows: unchanged, it simulates."""
-    assert main(["simulate", str(env.cubes["good"]), "--out", str(env.out())]) == 0
+@pytest.mark.parametrize("name", ["good", "quadratic"])
+def test_the_cube_itself_is_fine(env, capfd, name):
+    """The controls of the cube rows: unchanged, it simulates (with 10-node tets too, the
+    control of "folded")."""
+    assert main(["simulate", str(env.cubes[name]), "--out", str(env.out())]) == 0
 
 
 @pytest.mark.slow

@@ -32,12 +32,7 @@ from test_forward_analytic import C, E, L, P, cantilever_errors
 SIZES = {"letter-a": None, "inclusion": None, "cantilever": 0.5, "prostate-phantom": 1.6}
 STRAIGHT_WALLS = {"letter-a": True, "inclusion": True, "prostate-phantom": False}  # loaded facets: physical
 # quadratics are in the P2 space there (on curved facets only affine fields are)
-# The default phantom (h = 1.6) has a few tangled curved tetrahedra (their midpoints
-# fold over); their children overlap, and the mesh check refuses the refinement with
-# one line (estimate --check-mesh on it does the same). Until the phantom's curving is
-# untangled (gmsh HighOrderOptimize = 2 does it, at 8x the meshing time), it is skipped.
-NAMES = ["letter-a", "inclusion",
-         pytest.param("prostate-phantom", marks=pytest.mark.skip(reason="tangled curved cells: refinement refused"))]
+NAMES = ["letter-a", "inclusion", "prostate-phantom"]
 
 
 @pytest.fixture(scope="module")
@@ -111,13 +106,7 @@ def test_same_lengths_areas_and_volumes(pair, name):
     degree = 20 if coarse.gdim == 3 else 12
     before, after = _measures(coarse, degree), _measures(fine, degree)
     for key, value in before.items():
-        rtol = 1e-10
-        if name == "prostate-phantom" and key == "tissue":
-            # 26 of this mesh's curved tets are tangled (det J changes sign inside, gmsh's
-            # minSJ < 0 too): |det J| has a kink there and quadrature converges slowly.
-            # The signed volume (det J is a cubic) is compared exactly instead.
-            rtol = 1e-5
-        assert abs(after[key] - value) <= rtol * abs(value), (key, value, after[key])
+        assert abs(after[key] - value) <= 1e-10 * abs(value), (key, value, after[key])
         assert value > 0, key
 
 
