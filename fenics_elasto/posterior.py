@@ -270,6 +270,7 @@ def spatial_patches(points: np.ndarray, count: int) -> np.ndarray:
 
 
 END_PRECISION = 0.05  # profile_interval: an end bracketed within this share of its distance is found
+END_CLOSE = 0.15  # profile_interval: a value within this share of the threshold (in sqrt(Phi* rise)) gives the end
 
 
 def profile_interval(value, s_hat: float, std: float, noise: float, bounds, tries: int = 8) -> tuple[float, float]:
@@ -279,11 +280,15 @@ def profile_interval(value, s_hat: float, std: float, noise: float, bounds, trie
     interval (the same for a quadratic Phi*) cannot: a constant that the data bound more
     weakly on one side (a stiff inclusion barely deforms whether 10x or 50x the tissue)
     gets a longer arm there, up to its bound. Secant steps on sqrt(Phi* - Phi*_min),
-    linear in s for a quadratic Phi*, from the Laplace ends: 2-3 values per side; an
-    end bracketed within END_PRECISION of its distance is taken from the secant there
-    (a jagged Phi* -- a rough target's inner fits hopping between local minima -- has
-    no end more precise than that: on the letter at 0.5 % noise the secant took 7
-    values, each inner fit up to 400 iterations, to move the end by 1 % of its arm)."""
+    linear in s for a quadratic Phi*, from the Laplace ends: 1-2 values per side. A value
+    within END_CLOSE of the threshold gives the end by the secant through it, not
+    evaluated (exact for a quadratic Phi*; the letter at 0.5 % noise: within 3 % of the
+    arm the next values found, where the Laplace end -- 5-25 % off the threshold -- was
+    followed by a 1.5x step and a secant, 3 values a side), and so does a bracket
+    narrower than END_PRECISION of its distance (a jagged Phi* -- a rough target's
+    inner fits hopping between local minima -- has no end more precise than that: on
+    the letter at 0.5 % noise the secant took 7 values, each inner fit up to 400
+    iterations, to move the end by 1 % of its arm)."""
     phi_hat = value(s_hat)
     target = np.sqrt(0.5 * CHI2_95) * noise
     ends = []
@@ -293,8 +298,6 @@ def profile_interval(value, s_hat: float, std: float, noise: float, bounds, trie
         t = min(Z95 * std, room) if np.isfinite(std) and std > 0 else room
         for _ in range(tries):
             g = np.sqrt(max(value(s_hat + direction * t) - phi_hat, 0.0)) - target
-            if abs(g) < 0.02 * target:
-                break
             if g < 0:
                 below = (t, g)
                 if t >= room:  # still inside at the bound: open to it
@@ -302,11 +305,15 @@ def profile_interval(value, s_hat: float, std: float, noise: float, bounds, trie
             else:
                 above = (t, g)
             (t0, g0), (t1, g1) = below, above if above is not None else below
-            if above is None:  # not yet outside: extrapolate the secant from the optimum, at least 1.5x
-                t = min(room, max(1.5 * t, t * target / max(g + target, 1e-300)))
+            if above is None:  # not yet outside: the secant from the optimum (g = -target there)
+                secant = t * target / max(g + target, 1e-300)
+                if abs(g) < END_CLOSE * target:
+                    t = min(room, secant)
+                    break
+                t = min(room, max(1.5 * t, secant))  # at least 1.5x: a flat Phi* would creep
             else:
                 t = t0 + (t1 - t0) * (-g0) / (g1 - g0)  # within the bracket
-                if t1 - t0 < END_PRECISION * t:  # bracketed closely enough: no chasing a jagged Phi*
+                if abs(g) < END_CLOSE * target or t1 - t0 < END_PRECISION * t:  # no chasing a jagged Phi*
                     break
         ends.append(s_hat + direction * t)
     return ends[0], ends[1]

@@ -391,9 +391,12 @@ def test_profile_interval_follows_the_shape_of_phi():
 
 def test_a_jittery_phi_is_bracketed_not_chased():
     """Phi* with a jitter of 5 % of the interval's threshold (a rough target's inner fits
-    hopping between minima): an end is taken once it is bracketed within END_PRECISION
-    of its distance, not chased to the 2 % of the threshold a smooth Phi* reaches (4
-    values in all here, 6 without the rule), within 3 % of the jitter-free ends."""
+    hopping between minima): an end is taken from the secant once a value is within
+    END_CLOSE of the threshold (or bracketed within END_PRECISION of its distance), not
+    chased to the 2 % of the threshold a smooth Phi* reaches (3 values in all here; 4
+    with bracketing alone, 6 with neither), within the jitter's own reach of the
+    jitter-free ends: a jitter of 5 % of the threshold at the end and at the minimum
+    moves the crossing by up to 5 % of the arm."""
     from fenics_elasto.posterior import profile_interval
 
     calls = []
@@ -406,8 +409,8 @@ def test_a_jittery_phi_is_bracketed_not_chased():
 
     low, high = profile_interval(jittery, s_hat, std, noise, (-5.0, 5.0))
     reach = 1.959964 * std
-    assert (s_hat - low, high - s_hat) == pytest.approx((reach, reach), rel=0.03)
-    assert len(calls) <= 5
+    assert (s_hat - low, high - s_hat) == pytest.approx((reach, reach), rel=0.05)
+    assert len(calls) <= 3
 
 
 def test_a_jagged_phi_does_not_shrink_the_interval():
