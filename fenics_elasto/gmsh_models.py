@@ -156,13 +156,13 @@ def folded_tetrahedra(gmsh) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(tets, np.int64)[folded], np.asarray(nodes, np.int64).reshape(-1, 10)[folded]
 
 
-def untangle(gmsh, optimise: bool = True) -> int:
+def untangle(gmsh) -> int:
     """Unfold the curved tetrahedra that curving a mesh's boundary folded over (a thin
     cell at a curved wall whose midpoint passes its opposite face): gmsh's high-order
-    optimisation of a layer around each, boundary nodes fixed (``optimise``), then the
-    edge midpoints of any cell still folded put back on its straight edges (its walls
-    then follow their chords there). Returns how many cells were straightened."""
-    if optimise and len(folded_tetrahedra(gmsh)[0]):
+    optimisation of a layer around each, boundary nodes fixed, then the edge midpoints
+    of any cell still folded put back on its straight edges (its walls then follow
+    their chords there). Returns how many cells were straightened."""
+    if len(folded_tetrahedra(gmsh)[0]):
         gmsh.option.setNumber("Mesh.HighOrderNumLayers", 1)
         gmsh.option.setNumber("Mesh.HighOrderFixBoundaryNodes", 1)
         gmsh.model.mesh.optimize("HighOrder")
