@@ -44,7 +44,7 @@ from fenics_elasto.anatomy_repair import (Shell, closed_shells, cut_by_planes, e
 from fenics_elasto.budget import CELLS_PER_VOLUME, check_mesh_cost
 from fenics_elasto.config import read_scene_spec
 from fenics_elasto.errors import UserError, require
-from fenics_elasto.gmsh_models import fresh_gmsh_model, untangle
+from fenics_elasto.gmsh_models import fresh_gmsh_model, node_positions, untangle
 from fenics_elasto.logs import log
 from fenics_elasto.meshcheck import check_mesh
 from fenics_elasto.surface import quiet_vtk
@@ -363,13 +363,6 @@ def _generate(gmsh, shells: list[Shell], owned: list) -> None:
 MIDPOINTS = ((0, 1), (1, 2), (2, 0))  # gmsh's 6-node triangle: corner pairs of nodes 3, 4, 5
 
 
-def _node_positions(gmsh) -> np.ndarray:
-    tags, coords, _ = gmsh.model.mesh.getNodes()
-    position = np.zeros((int(tags.max()) + 1, 3))
-    position[tags] = coords.reshape(-1, 3)
-    return position
-
-
 def _curve(gmsh, shells: list[Shell], owned: list) -> int:
     """Quadratic elements whose boundary-edge midpoints lie on the input surfaces: the
     straight midpoint moved to the closest point of the shell's triangulation (gmsh's
@@ -380,7 +373,7 @@ def _curve(gmsh, shells: list[Shell], owned: list) -> int:
 
     gmsh.option.setNumber("Mesh.SecondOrderLinear", 1)
     gmsh.model.mesh.setOrder(2)
-    position = _node_positions(gmsh)
+    position = node_positions(gmsh)
     for shell, tags in zip(shells, owned):
         nodes = np.vstack([gmsh.model.mesh.getElementsByType(9, tag)[1].reshape(-1, 6) for tag in tags]).astype(np.int64)
         middle, first = np.unique(nodes[:, 3:].ravel(), return_index=True)

@@ -162,10 +162,11 @@ def untangle(gmsh) -> int:
     optimisation of a layer around each, boundary nodes fixed, then the edge midpoints
     of any cell still folded put back on its straight edges (its walls then follow
     their chords there). Returns how many cells were straightened."""
-    if len(folded_tetrahedra(gmsh)[0]):
-        gmsh.option.setNumber("Mesh.HighOrderNumLayers", 1)
-        gmsh.option.setNumber("Mesh.HighOrderFixBoundaryNodes", 1)
-        gmsh.model.mesh.optimize("HighOrder")
+    if not len(folded_tetrahedra(gmsh)[0]):
+        return 0  # the usual case: det J's bounds over every cell are computed once, not twice
+    gmsh.option.setNumber("Mesh.HighOrderNumLayers", 1)
+    gmsh.option.setNumber("Mesh.HighOrderFixBoundaryNodes", 1)
+    gmsh.model.mesh.optimize("HighOrder")
     straightened = 0
     for _ in range(3):  # straightening one cell's edges can fold a neighbour sharing them
         _, nodes = folded_tetrahedra(gmsh)
