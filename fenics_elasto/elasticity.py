@@ -340,12 +340,12 @@ class ElasticModel:
         return u
 
     @contextmanager
-    def solver(self, c, clamped: np.ndarray, nearby: bool = False):
+    def solver(self, c, clamped: np.ndarray, nearby: bool = False, rtol: float | None = None):
         """A solver of K(c) for the solves in the ``with`` block: the cached factorization
         (``factorize``), or with ``nearby`` one borrowing the factors of a nearby material
-        value (solvers.NearbySolver), destroyed after the block -- its own K and KSP; the
-        factors stay with their solver."""
-        borrowed = self.solvers.nearby(c, clamped) if nearby else None
+        value (solvers.NearbySolver, to ``rtol`` if given), destroyed after the block -- its
+        own K and KSP; the factors stay with their solver."""
+        borrowed = self.solvers.nearby(c, clamped, rtol) if nearby else None
         try:
             yield borrowed or self.factorize(c, clamped)
         finally:

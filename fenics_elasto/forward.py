@@ -157,13 +157,14 @@ class BoundaryForward:
         G.getDenseArray()[rows] = self.loaded.local(W.reshape(self.loaded.total, self.gdim * r)).reshape(-1, r)
         return G
 
-    def response_block(self, theta, basis: np.ndarray | None = None) -> np.ndarray:
+    def response_block(self, theta, basis: np.ndarray | None = None, rtol: float | None = None) -> np.ndarray:
         """X (owned DOFs, r): the field of each boundary mode (W: force_dofs x r; None: all).
 
         The r right-hand sides [-K W on free rows, W on the loaded rows] go through the
         one factorization of K_D as a dense block (MatMatSolve). With ``borrow`` a single
-        mode (reduction.missing_wall_motion's) is a single solve on nearby factors; a
-        block pays a factorization (CG would take each column alone).
+        mode (reduction.missing_wall_motion's) is a single solve on nearby factors, to
+        ``rtol`` if given (a diagnostic needs fewer CG steps); a block pays a factorization
+        (CG would take each column alone).
         """
         c = self.coefficients(theta)[0]
         G = self.lift(basis)
@@ -173,7 +174,7 @@ class BoundaryForward:
         block *= -1.0
         block[self.clamped_boundary] = G.getDenseArray()[self.clamped_boundary]
         X = self.model.dense(G.getSize()[1])
-        with self.model.solver(c, self.clamped_boundary, self.borrow and G.getSize()[1] == 1) as factor:
+        with self.model.solver(c, self.clamped_boundary, self.borrow and G.getSize()[1] == 1, rtol) as factor:
             factor.solve_many(rhs, X)
         out = X.getDenseArray().copy()
         for M in (G, K, rhs, X):

@@ -124,9 +124,10 @@ class InverseProblem:
         """
         return self._evaluate(theta, self.forward.from_boundary(theta, d), True, gradient)
 
-    def response(self, theta, basis: np.ndarray | None = None) -> np.ndarray:
-        """J (n_obs, gdim, r): observed displacement per unit of each boundary mode."""
-        return self.observation.rows(self.forward.response_block(theta, basis))
+    def response(self, theta, basis: np.ndarray | None = None, rtol: float | None = None) -> np.ndarray:
+        """J (n_obs, gdim, r): observed displacement per unit of each boundary mode
+        (``rtol``: see forward.response_block)."""
+        return self.observation.rows(self.forward.response_block(theta, basis, rtol))
 
     def distances(self, residual: np.ndarray) -> dict:
         return self.misfit.distances(residual)

@@ -60,7 +60,7 @@ from __future__ import annotations
 import time
 from collections import OrderedDict
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 from mpi4py import MPI
@@ -588,12 +588,15 @@ class SolverCache:
         self._solvers[key] = solver
         return solver
 
-    def nearby(self, c, clamped: np.ndarray) -> NearbySolver | None:
-        """A NearbySolver for K(c) on the factors ``closest`` finds; None if there are
-        none. The caller destroys it after use: it is not cached, so it never outlives
-        the factors it borrows."""
+    def nearby(self, c, clamped: np.ndarray, rtol: float | None = None) -> NearbySolver | None:
+        """A NearbySolver for K(c) on the factors ``closest`` finds (to ``rtol`` if given,
+        else the settings'); None if there are none. The caller destroys it after use: it
+        is not cached, so it never outlives the factors it borrows."""
         base = self.closest(c, clamped)
-        return None if base is None else NearbySolver(self.stiffness(c, clamped), clamped, self.settings, self.stats, base)
+        if base is None:
+            return None
+        settings = self.settings if rtol is None else replace(self.settings, rtol=rtol)
+        return NearbySolver(self.stiffness(c, clamped), clamped, settings, self.stats, base)
 
     def closest(self, c, clamped: np.ndarray) -> DirectSolver | None:
         """The cached direct solver of the same clamped set whose coefficients c0 differ
