@@ -35,6 +35,7 @@ from scipy.optimize import minimize
 from fenics_elasto.logs import log
 from fenics_elasto.inner import GaussNewton, InnerResult
 from fenics_elasto.interrupts import check_interrupt
+from fenics_elasto.surrogate import DERIVATIVE_TOL
 
 BRACKET_GUARD = 0.05  # bracketed_minimum: a step keeps this share of the bracket from its ends
 
@@ -242,7 +243,7 @@ class Profile:
         if steps is None:
             return None
         fit = self.inner.fit(self.surrogate.response(theta)[0])
-        more = self.surrogate.refine(theta, factors, fit.q)  # the derivative along the optimum's controls
+        more = self.surrogate.refine(theta, factors, fit.q, DERIVATIVE_TOL)  # the derivative along the optimum's controls
         if more is None:
             return None
         log.info(f"  surrogate refined at {self.params.describe(theta)} on nearby factors ({steps} + {more} block "
