@@ -45,6 +45,29 @@ def test_linear_combination_equals_direct_assembly(phantom):
     assert combined.norm() / direct.norm() < 1e-12
 
 
+def test_a_small_region_derivative_runs_over_its_own_entries(phantom):
+    """ElasticModel.compact_terms: the prostate's terms (a small region) get copies without
+    the pattern's explicit zeros, the tissue's do not; dK/dE_prostate x through them equals
+    the product with the summed matrix, and K x (every term) is unchanged."""
+    scene, model = phantom
+    names = [m.name for m in scene.materials]
+    small = [names.index("prostate")]
+    compact = model.compact_terms
+    assert [j for j, C in enumerate(compact) if C is not None] == [2 * m + k for m in small for k in (0, 1)]
+    full = sum(M.getInfo()["nz_used"] for M in model.terms[2 * small[0]:2 * small[0] + 2])
+    kept = sum(compact[j].getInfo()["nz_used"] for j in (2 * small[0], 2 * small[0] + 1))
+    assert kept < 0.5 * full
+    E, nu = np.array([10.0, 37.0]), np.array([0.45, 0.3])
+    x, y, z = model.function(), model.function(), model.function()
+    x.x.array[:] = np.random.default_rng(0).standard_normal(len(x.x.array))
+    for c in (model.coefficient_derivatives(E, nu)[0][small[0]], model.coefficients(E, nu)):
+        model.apply_stiffness(c, x.x.petsc_vec, y.x.petsc_vec)
+        summed = model.stiffness(c)
+        summed.mult(x.x.petsc_vec, z.x.petsc_vec)
+        summed.destroy()
+        assert np.linalg.norm(y.x.array - z.x.array) <= 1e-13 * np.linalg.norm(z.x.array)
+
+
 def _patch_residual(scene, model) -> np.ndarray:
     """|K u| per node for an affine u, one material everywhere: zero at every node off
     the boundary when the quadrature integrates a constant stress's equilibrium exactly."""
