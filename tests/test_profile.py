@@ -462,3 +462,46 @@ def test_an_inner_spread_widens_the_profile_interval_to_the_trend_minimum():
         bounds = (-5.0, 5.0)
         (low, high), jagged = untrusted_sides(profile_interval(computed, s_hat, std, noise, bounds), s_hat, std, bounds)
         assert jagged and not low <= s0 <= high, (offset, s0, low, high)
+
+
+class _Quadratic:
+    """A landmark-like misfit, Phi = |y - t|^2 / 2: Gauss-Newton's model of it is exact."""
+
+    def __init__(self, target):
+        self.target, self.queries = target, 0
+
+    def residual(self, y):
+        self.queries += 1
+        return y - self.target
+
+    def cost(self, residual):
+        return 0.5 * float(np.sum(residual**2))
+
+    def gradient(self, residual):
+        return residual
+
+    def gauss_newton_rows(self, y):
+        return np.broadcast_to(np.eye(y.shape[1]), (len(y), y.shape[1], y.shape[1]))
+
+
+def test_gauss_newton_stops_on_its_models_promise():
+    """An exact quadratic model: the damped steps reach the optimum of misfit + prior,
+    and the fit ends on an iteration's promised decrease, without querying the misfit
+    at a step it already knows is negligible: one query per iteration (the start's, then
+    every step but the last), not one more."""
+    from types import SimpleNamespace
+
+    from fenics_elasto.inner import GaussNewton
+
+    rng = np.random.default_rng(0)
+    points, J = rng.standard_normal((12, 3)), rng.standard_normal((12, 3, 4))
+    misfit = _Quadratic(points + rng.standard_normal((12, 3)))
+    problem = SimpleNamespace(misfit=misfit, observation=SimpleNamespace(points=points))
+    q0 = rng.standard_normal(4)
+    fit = GaussNewton(problem, q0, anchor=0.1, maxiter=50, tol=1e-12).fit(J)
+    flat = J.reshape(-1, 4)
+    alpha = 0.1 * float(np.mean(np.sum(flat**2, axis=0)))
+    exact = np.linalg.solve(flat.T @ flat + alpha * np.eye(4),
+                            flat.T @ (misfit.target - points).ravel() + alpha * q0)
+    assert fit.converged and np.linalg.norm(fit.q - exact) < 1e-5 * np.linalg.norm(exact)  # value to ~1e-12
+    assert fit.iterations >= 2 and misfit.queries == fit.iterations, (misfit.queries, fit.iterations)
