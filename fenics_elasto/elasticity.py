@@ -215,7 +215,8 @@ class ElasticModel:
         (a model that only numbers nodes -- landmarks, atlas order -- never pays for them).
         Each is integrated over its region's cells only (the integrals cost the mesh
         twice in all, not twice per material) into a matrix with the whole mesh's
-        sparsity pattern, so that any K is a same-pattern linear combination.
+        sparsity pattern, so that any K is a same-pattern linear combination. A small
+        region's terms are kept on its own sparsity too (``compact_terms``).
         """
         mesh, V = self.scene.mesh, self.V
         u, v = ufl.TrialFunction(V), ufl.TestFunction(V)
