@@ -207,9 +207,22 @@ class ElasticModel:
 
     # --- matrices
 
-    @cached_property
+    @property
     def terms(self) -> list:
-        """M_j with K(theta) = sum_j c_j M_j: (A_m, B_m) per material, interleaved.
+        """M_j with K(theta) = sum_j c_j M_j: (A_m, B_m) per material, interleaved."""
+        return self._assembled[0]
+
+    @property
+    def compact_terms(self) -> list:
+        """Per term of ``terms``: for a small region's (under COMPACT_SHARE of the cells) the
+        same matrix on its own cells' sparsity, without the whole mesh's pattern; None for
+        the others. A small region's E moves only its own entries, and dK/dE x over them
+        is ~8x cheaper (the phantom's prostate: 13 % of the pattern, 0.45 instead of 4.5 ms)."""
+        return self._assembled[1]
+
+    @cached_property
+    def _assembled(self) -> tuple[list, list]:
+        """(``terms``, ``compact_terms``).
 
         A_m = 2 eps(u):eps(v) and B_m = div u div v over region m, assembled on first use
         (a model that only numbers nodes -- landmarks, atlas order -- never pays for them).
@@ -227,12 +240,12 @@ class ElasticModel:
         pattern.assemble()
         metadata = stiffness_quadrature(self.V)
         total = mesh.topology.index_map(mesh.topology.dim).size_global
-        out, self._compact = [], []
+        out, compacts = [], []
         for material in self.scene.materials:
             cells = np.unique(self.scene.cell_tags.find(material.tag)).astype(np.int32)
             region = dolfinx.mesh.meshtags(mesh, mesh.topology.dim, cells, np.ones(len(cells), np.int32))
             dx = ufl.Measure("dx", domain=mesh, subdomain_data=region, metadata=metadata)(1)
-            small = self.comm.allreduce(len(region.indices), op=MPI.SUM) < COMPACT_SHARE * total
+            small = self.comm.allreduce(len(cells), op=MPI.SUM) < COMPACT_SHARE * total
             for integrand in (2 * ufl.inner(epsilon(u), epsilon(v)), ufl.div(u) * ufl.div(v)):
                 form = fem.form(integrand * dx)
                 M = pattern.duplicate(copy=True)
@@ -245,9 +258,9 @@ class ElasticModel:
                     M.assemble()
                     compact = None
                 out.append(M)
-                self._compact.append(compact)
+                compacts.append(compact)
         pattern.destroy()
-        return out
+        return out, compacts
 
     def coefficients(self, E, nu) -> np.ndarray:
         """c_j of ``terms``: (mu_m, lambda_m) of every material, interleaved."""
@@ -267,15 +280,6 @@ class ElasticModel:
     def stiffness(self, c) -> PETSc.Mat:
         """Unconstrained K = sum_j c_j M_j (a new matrix)."""
         return combine(c, self.terms)
-
-    @property
-    def compact_terms(self) -> list:
-        """Per term of ``terms``: for a small region's (under COMPACT_SHARE of the cells) the
-        same matrix on its own cells' sparsity, without the whole mesh's pattern; None for
-        the others. A small region's E moves only its own entries, and dK/dE x over them
-        is ~8x cheaper (the phantom's prostate: 13 % of the pattern, 0.45 instead of 4.5 ms)."""
-        self.terms  # noqa: B018 (assembled with them)
-        return self._compact
 
     def apply_stiffness(self, c, x: PETSc.Vec, out: PETSc.Vec) -> PETSc.Vec:
         """out = (sum_j c_j M_j) x -- K(theta) x, or with c = dc/dtheta_k its derivative.
