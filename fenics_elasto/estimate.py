@@ -265,14 +265,17 @@ class Estimator:
                                                       or self.inner_name != "gauss-newton")):
             return
         fits = []  # (s, fit): the surrogate's inner optima met along the way, starts for the spread
+        known = []  # (s, Phi*) the estimate's own full solves computed: the same function, already at hand
         if self.surrogate is not None:
             def value(s):
                 fits.append((s, self.surrogate.fit(np.atleast_1d(s))))
                 return fits[-1][1].value
         else:
             value = lambda s: self.profile.solve(self.params.to_theta(np.atleast_1d(s)), "ci").value  # noqa: E731
+            known = [(float(s[0]), result.value) for s, result, _ in self.profile.solved]
         s_hat, std, bounds = float(post.s[0]), float(post.laplace_std_s[0]), self.params.s_bounds()[0]
-        ends, jagged = untrusted_sides(profile_interval(value, s_hat, std, post.noise_std, bounds), s_hat, std, bounds)
+        ends = profile_interval(value, s_hat, std, post.noise_std, bounds, known=known)
+        ends, jagged = untrusted_sides(ends, s_hat, std, bounds)
         # A target rough enough to be smoothed may have an inner problem with several minima
         # though the few profile values met none: a phantom target at 2 % noise read E = 63.5,
         # 54.7-73.2 (truth 50), where the same draw on another source mesh showed a jagged side

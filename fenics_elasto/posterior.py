@@ -273,7 +273,8 @@ END_PRECISION = 0.05  # profile_interval: an end bracketed within this share of 
 END_CLOSE = 0.15  # profile_interval: a value within this share of the threshold (in sqrt(Phi* rise)) gives the end
 
 
-def profile_interval(value, s_hat: float, std: float, noise: float, bounds, tries: int = 8) -> tuple[float, float]:
+def profile_interval(value, s_hat: float, std: float, noise: float, bounds, tries: int = 8,
+                     known=()) -> tuple[float, float]:
     """The 95 % profile-likelihood interval of one constant in s: where Phi*(s) (``value``,
     the controls profiled out) rises CHI2_95 noise^2 / 2 above its minimum -- Phi* /
     noise^2 is the negative log-likelihood. It follows Phi*'s own shape, which the Laplace
@@ -288,15 +289,22 @@ def profile_interval(value, s_hat: float, std: float, noise: float, bounds, trie
     narrower than END_PRECISION of its distance (a jagged Phi* -- a rough target's
     inner fits hopping between local minima -- has no end more precise than that: on
     the letter at 0.5 % noise the secant took 7 values, each inner fit up to 400
-    iterations, to move the end by 1 % of its arm)."""
+    iterations, to move the end by 1 % of its arm).
+
+    ``known``: (s, Phi*) pairs of the same function already computed (the estimate's
+    scan and line searches): they seed each side's bracket, so values are computed only
+    between them (the 2D inclusion at 0.5 % noise: its line searches had often been
+    within a few % of the profile's values, which computed them again)."""
     phi_hat = value(s_hat)
     target = np.sqrt(0.5 * CHI2_95) * noise
     ends = []
     for direction, bound in ((-1.0, bounds[0]), (1.0, bounds[1])):
         room = abs(bound - s_hat)
-        below, above = (0.0, -target), None  # (offset, g) with g < 0 inside the interval, > 0 outside
-        t = min(Z95 * std, room) if np.isfinite(std) and std > 0 else room
-        for _ in range(tries):
+        side = [(direction * (s - s_hat), np.sqrt(max(phi - phi_hat, 0.0)) - target) for s, phi in known]
+        below, above = _bracket([(0.0, -target)] + [(t, g) for t, g in side if 0 < t <= room])
+        laplace = min(Z95 * std, room) if np.isfinite(std) and std > 0 else room
+        t, done = _next_offset(below, above, target, room, laplace)
+        for _ in range(tries if not done else 0):
             g = np.sqrt(max(value(s_hat + direction * t) - phi_hat, 0.0)) - target
             if g < 0:
                 below = (t, g)
@@ -304,19 +312,44 @@ def profile_interval(value, s_hat: float, std: float, noise: float, bounds, trie
                     break
             else:
                 above = (t, g)
-            (t0, g0), (t1, g1) = below, above if above is not None else below
-            if above is None:  # not yet outside: the secant from the optimum (g = -target there)
-                secant = t * target / max(g + target, 1e-300)
-                if abs(g) < END_CLOSE * target:
-                    t = min(room, secant)
-                    break
-                t = min(room, max(1.5 * t, secant))  # at least 1.5x: a flat Phi* would creep
-            else:
-                t = t0 + (t1 - t0) * (-g0) / (g1 - g0)  # within the bracket
-                if abs(g) < END_CLOSE * target or t1 - t0 < END_PRECISION * t:  # no chasing a jagged Phi*
-                    break
+            t, done = _next_offset(below, above, target, room, t)
+            if done:
+                break
         ends.append(s_hat + direction * t)
     return ends[0], ends[1]
+
+
+def _bracket(side) -> tuple[tuple[float, float], tuple[float, float] | None]:
+    """(offset, g) of the farthest value inside the interval, and of the nearest one
+    outside beyond it (None if none is); ``side`` includes the optimum, (0, -target). On
+    a jagged Phi* the values inside and outside interleave: every value inside is one
+    the data cannot exclude, so the interval reaches the farthest of them."""
+    below = max((t, g) for t, g in side if g < 0)
+    outside = [(t, g) for t, g in side if g >= 0 and t > below[0]]
+    return below, min(outside) if outside else None
+
+
+def _next_offset(below, above, target: float, room: float, first: float) -> tuple[float, bool]:
+    """The next offset to compute from the bracket so far, and whether it is the end.
+    Nothing outside yet: ``first`` if nothing inside either (the Laplace end), else the
+    secant from the optimum (g = -target there) through the farthest value inside -- the
+    end if that value is within END_CLOSE of the threshold, else at least 1.5x as far
+    (a flat Phi* would creep) and no nearer than ``first``. Bracketed: the secant
+    within; the end once the value nearer the threshold is within END_CLOSE of it or the
+    bracket is narrower than END_PRECISION of its distance (no chasing a jagged Phi*)."""
+    (t0, g0) = below
+    if above is None:
+        if t0 == 0.0:
+            return first, False
+        if t0 >= room:
+            return room, True
+        secant = t0 * target / max(g0 + target, 1e-300)
+        if abs(g0) < END_CLOSE * target:
+            return min(room, secant), True
+        return min(room, max(1.5 * t0, secant, first)), False
+    t1, g1 = above
+    t = t0 + (t1 - t0) * (-g0) / (g1 - g0)
+    return t, min(-g0, g1) < END_CLOSE * target or t1 - t0 < END_PRECISION * t
 
 
 JITTER_NOISE = 1.05  # an inner spread raising the noise level of the threshold less than this leaves the interval

@@ -413,6 +413,37 @@ def test_a_jittery_phi_is_bracketed_not_chased():
     assert len(calls) <= 3
 
 
+def test_values_the_estimate_computed_seed_the_profile_bracket():
+    """Phi* values already at hand (the estimate's scan and line searches) bracket the
+    ends: a skewed Phi* whose line searches passed near both ends needs one new value a
+    side, not 2-3, for the same ends (within the END_CLOSE reach); values inside and
+    outside that interleave (a jagged Phi*, whose computed values are inner minima that
+    can only lie above the best one) give the farthest value inside, not the nearest
+    outside."""
+    from fenics_elasto.posterior import profile_interval
+
+    noise, std, s_hat = 0.1, 0.3, 1.0
+    reach = 1.959964 * std
+    exact = (s_hat + np.log(1 - reach), s_hat + np.log1p(reach))
+    skewed = lambda s: 2.0 + 0.5 * noise**2 * (np.expm1(s - s_hat) / std) ** 2  # noqa: E731
+    calls = []
+    alone = profile_interval(lambda s: calls.append(s) or skewed(s), s_hat, std, noise, (-5.0, 5.0))
+    cold = len(calls) - 1  # the first is the optimum
+    calls.clear()
+    met = [s_hat + d for d in (-1.2, -0.6, -0.1, 0.05, 0.3, 0.7)]
+    seeded = profile_interval(lambda s: calls.append(s) or skewed(s), s_hat, std, noise, (-5.0, 5.0),
+                              known=[(s, skewed(s)) for s in met])
+    assert cold >= 4 and len(calls) - 1 <= 2
+    assert np.subtract(seeded, exact) == pytest.approx(0.0, abs=0.15 * 0.15 * reach)
+    assert np.subtract(alone, exact) == pytest.approx(0.0, abs=0.15 * 0.15 * reach)
+    # a value 0.4 reach out lies above (another inner minimum); one at 0.8 reach is inside
+    hop = {s_hat + 0.4 * reach: skewed(s_hat) + 10 * noise**2}
+    quadratic = lambda s: hop.get(s, 2.0 + 0.5 * noise**2 * ((s - s_hat) / std) ** 2)  # noqa: E731
+    known = [(s, quadratic(s)) for s in (s_hat + 0.4 * reach, s_hat + 0.8 * reach)]
+    high = profile_interval(quadratic, s_hat, std, noise, (-5.0, 5.0), known=known)[1]
+    assert high - s_hat == pytest.approx(reach, rel=0.03)
+
+
 def test_a_jagged_phi_does_not_shrink_the_interval():
     """Phi* that jumps up right beside the answer (inner fits in other local minima on a
     rough target) would give a profile interval of almost nothing; that side falls back to
