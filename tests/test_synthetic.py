@@ -83,6 +83,36 @@ def test_pressure_examples_are_forward_solves_at_the_drawn_materials(inclusion):
     assert problem.model.factorizations - before == 2  # one per material level, examples solved as blocks
 
 
+def test_wall_loads_see_only_the_nodes_on_the_loaded_walls(inclusion):
+    """Pressure and traction fields are evaluated at the walls' nodes only (the fields
+    at a whole mesh's nodes took 19 GB for 400 examples): the assembled wall loads must
+    not see any other node. A field that is 1 everywhere off the walls loads nothing;
+    the same field on the walls does."""
+    from fenics_elasto.synthetic import WallLoads, _group_of, on_walls
+
+    _, problem = inclusion
+    loads = WallLoads(problem.forward)
+    for matrix, points, k in ((loads.pressure, loads.q_points, 1), (loads.traction, loads.v_points, 2)):
+        groups = _group_of(problem, points)
+        assert 0 < (groups >= 0).sum() < 0.2 * len(points)
+        off = np.where(groups[:, None] >= 0, 0.0, 1.0) * np.ones((len(points), k))
+        on = on_walls(points, groups, np.ones((1, (groups >= 0).sum(), k)))[0]
+        assert np.abs(loads.block(matrix, off.reshape(-1, 1), problem.model).getDenseArray()).max() == 0.0
+        assert np.abs(loads.block(matrix, on.reshape(-1, 1), problem.model).getDenseArray()).max() > 0.0
+
+
+def test_smooth_fields_one_at_a_time_are_the_fields_drawn_at_once():
+    """SmoothFields evaluates its fields one by one (bounded memory); the values are the
+    random-feature sum written out for all of them together."""
+    from fenics_elasto.fields import FEATURES
+
+    fields = SmoothFields(5, 3, 3, 1.5, np.random.default_rng(4))
+    points = np.random.default_rng(1).uniform(-3, 3, (200, 3))
+    waves = np.cos(np.einsum("ckfd,nd->ckfn", fields.omega, points) + fields.phase[..., None])
+    together = np.sqrt(2.0 / FEATURES) * np.einsum("ckf,ckfn->cnk", fields.weight, waves)
+    assert np.abs(fields(points) - together).max() < 1e-13
+
+
 @pytest.mark.slow
 def test_train_synthetic_then_estimate_from_the_command_line(tmp_path):
     """Inclusion, target on a 2x finer mesh with the top pushed and rippled (a motion
