@@ -35,7 +35,7 @@ from fenics_elasto.matching import match_surface
 from fenics_elasto.misfit import SurfaceTerm
 from fenics_elasto.objective import Evaluation, InverseProblem
 from fenics_elasto.posterior import (CHI2_95, JITTER_NOISE, JITTER_STARTS, Z95, Posterior, jitter_noise, posterior_at,
-                                    profile_interval, target_offset, untrusted_sides)
+                                    profile_interval, scan_sees, target_offset, untrusted_sides)
 from fenics_elasto.reduction import bases_fit, missing_wall_motion, reach_warning
 from fenics_elasto.surrogate import MaterialSurrogate
 
@@ -221,7 +221,7 @@ class Estimator:
             log.info(f"scan of {len(points)} material values (start: surface matching; inner: {self.inner_name})")
             for theta in points:
                 self.profile.solve(theta, "scan", self._start_for(theta))
-            self.check_identifiable()
+            self.check_identifiable([result.value for _, result, _ in self.profile.solved])
             self.outer_iterations = minimize_profile(self.profile, xtol, self.options.outer_maxiter,
                                                      smooth=not self.problem.misfit.rough())
         else:  # one factorization at the initial values; the scan on the surrogate it seeds
@@ -229,8 +229,8 @@ class Estimator:
                      f"material values on the surrogate (inner: {self.inner_name})")
             self.profile.solve(self.params.initial, "start")
             self.problem.forward.borrow = True  # later solves on its factors where near enough (Profile.response)
-            self.check_identifiable()
-            start = surrogate_scan(self.surrogate, points)
+            start, scanned = surrogate_scan(self.surrogate, points)
+            self.check_identifiable([self.profile.best().value] + scanned)
             self.outer_iterations = minimize_on_surrogate(self.profile, self.surrogate, xtol, self.options.outer_maxiter,
                                                           start)
         self.polish()
@@ -324,11 +324,25 @@ class Estimator:
             "a 95 % interval: a target rougher than its sampling): the interval allows for them")
         return (max(min(low, s_hat - reach), bounds[0]), min(max(high, s_hat + reach), bounds[1])), False
 
-    def check_identifiable(self) -> None:
-        """After the scan: a constant whose 95 % interval (at the best full solve) is wider
-        than its bounds is not determined by the data -- end now, not after the whole run."""
+    def check_identifiable(self, scanned: list[float]) -> None:
+        """After the scan: a constant the data do not determine (at the best full solve:
+        its 95 % interval is wider than its bounds, or the controls mimic nearly all of
+        its effect) ends the run now, not after it. A single constant the controls mimic
+        locally but whose Phi* over the scan (``scanned``) clearly rises is seen by the
+        data: it runs, with a warning that its answer rests on the rest of its effect."""
         post = self.posterior()
         undetermined = {} if post is None else post.undetermined(self.params.s_bounds())
+        if len(undetermined) == 1 == len(self.params) and post.mimicked()[0]:
+            misfit = self.problem.misfit
+            phi_still = misfit.cost(misfit.residual(self.problem.observation.points))
+            if scan_sees(scanned, post.noise_std, phi_still):
+                label, best = self.params.labels[0], min(scanned)
+                self.warnings.append(
+                    f"{label}: the boundary forces can mimic {100 * (1 - post.separable[0]):.1f} % of its effect on the "
+                    f"data, yet Phi* over the start scan rises {(max(scanned) - best) / max(best, 1e-300):.3g}x above "
+                    "its minimum: the data see it through the rest, where a bias of the bases or the source mesh "
+                    "weighs more than noise (more training examples, landmarks, estimate --check-mesh)")
+                undetermined = {}
         if not undetermined:
             return
         why = "; ".join(f"{label}: {reason}" for label, reason in undetermined.items())

@@ -405,17 +405,18 @@ class Settle:
             raise StopIteration
 
 
-def surrogate_scan(surrogate: SurrogateProfile, points) -> np.ndarray:
-    """Phi* on the surrogate at each scan point (dense algebra, no factorization); the
-    best of them and of the full solves, in s."""
+def surrogate_scan(surrogate: SurrogateProfile, points) -> tuple[np.ndarray, list[float]]:
+    """Phi* on the surrogate at each scan point (dense algebra, no factorization): the
+    best of them and of the full solves, in s, and the values scanned."""
     profile, params = surrogate.profile, surrogate.params
     best_s, best = params.to_s(profile.best_theta()), profile.best().value
+    values = []
     for theta in points:
-        value = surrogate.value_and_gradient(params.to_s(theta))[0]
-        log.info(f"  scan  {params.describe(theta)}  Phi* ~ {value:.6e}  (surrogate)")
-        if value < best:
-            best_s, best = params.to_s(theta), value
-    return best_s
+        values.append(surrogate.value_and_gradient(params.to_s(theta))[0])
+        log.info(f"  scan  {params.describe(theta)}  Phi* ~ {values[-1]:.6e}  (surrogate)")
+        if values[-1] < best:
+            best_s, best = params.to_s(theta), values[-1]
+    return best_s, values
 
 
 def minimize_on_surrogate(profile: Profile, surrogate: SurrogateProfile, xtol: np.ndarray, maxiter: int,
