@@ -342,7 +342,7 @@ class Estimator:
                     f"data, yet Phi* over the start scan rises {(max(scanned) - best) / max(best, 1e-300):.3g}x above "
                     "its minimum: the data see it through the rest, where a bias of the bases or the source mesh "
                     "weighs more than noise (more training examples, landmarks, estimate --check-mesh)")
-                undetermined = {}
+                undetermined = post.undetermined(self.params.s_bounds(), seen=[label])
         if not undetermined:
             return
         why = "; ".join(f"{label}: {reason}" for label, reason in undetermined.items())

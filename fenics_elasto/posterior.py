@@ -155,15 +155,16 @@ class Posterior:
         data here (``separable`` below SEPARABLE_MIN)?"""
         return np.asarray(self.separable) < SEPARABLE_MIN
 
-    def undetermined(self, bounds_s: list) -> dict[str, str]:
+    def undetermined(self, bounds_s: list, seen=()) -> dict[str, str]:
         """The constants the data do not determine, and why: the boundary controls can
         mimic nearly all of its effect on the data (``separable`` below SEPARABLE_MIN:
         any value fits, noise or not), or its 95 % interval (in s) is wider than its
-        bounds (the noise hides it)."""
+        bounds (the noise hides it). The constants in ``seen`` were shown by other means
+        to be seen by the data (``scan_sees``): only their interval counts."""
         out = {}
         for label, sd, (lo, hi), share, mimicked in zip(self.labels, self.std_s, bounds_s, self.separable,
                                                         self.mimicked()):
-            if mimicked:
+            if mimicked and label not in seen:
                 out[label] = f"the boundary forces can mimic {100 * (1 - share):.1f} % of its effect on the data"
             elif not np.isfinite(sd) or 2 * Z95 * sd > hi - lo:
                 out[label] = "its 95 % interval is wider than its bounds"

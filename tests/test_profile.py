@@ -238,6 +238,13 @@ def test_undetermined_constant_is_flagged():
     assert laplace(determined, ["tissue.nu"], [0.3], [False]).undetermined([(0.0, 0.499)]) == {}
     noisy = Linearisation(100 * lin.residual, A_q, 1e-3 * rng.standard_normal((50, 1)), 0.0, 50)
     assert "wider than its bounds" in laplace(noisy, ["tissue.nu"], [0.3], [False]).undetermined([(0.0, 0.499)])["tissue.nu"]
+    # seen by the scan (scan_sees): the share no longer counts, the interval still does
+    assert "wider than its bounds" in post.undetermined([(0.0, 0.499)], seen=["tissue.nu"])["tissue.nu"]
+    mimicked = Linearisation(lin.residual, A_q, A_q @ rng.standard_normal((4, 1)) + 0.02 * rng.standard_normal((50, 1)),
+                             0.0, 50)
+    post = laplace(mimicked, ["tissue.nu"], [0.3], [False])
+    assert post.mimicked()[0] and "mimic" in post.undetermined([(0.0, 0.499)])["tissue.nu"]
+    assert post.undetermined([(0.0, 0.499)], seen=["tissue.nu"]) == {}
 
 
 
