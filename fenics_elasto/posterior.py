@@ -30,7 +30,9 @@ the interval are widened to theirs (measured there: 2.6x, the interval then hold
 truth). What remains unstated is a bias the residual cannot show: bases that cannot
 represent the wall motion (reduction.missing_wall_motion warns about it), a target
 offset as a whole (reported by ``target_offset``, not added). Identifiability: a
-constant whose 95 % interval is wider than its bounds is not determined by the data.
+constant whose 95 % interval is wider than its bounds is not determined by the data,
+nor one whose effect the controls mimic nearly all of (``separable``) -- unless, a
+single constant, its Phi* over the start scan clearly rises all the same (``scan_sees``).
 """
 
 from __future__ import annotations
