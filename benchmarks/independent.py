@@ -31,6 +31,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 import independent as ind  # noqa: E402
 
+from fenics_elasto.gmsh_models import open_msh  # noqa: E402
+
 CLI = Path(sys.executable).parent / "fenics-elasto"
 
 
@@ -124,16 +126,11 @@ def phantom_rows(out: Path, values, settings, synthetic=(120, 80), sizes=None):
 
 def mesh_size(msh: Path) -> str:
     """'V vertices, N nodes, C tetrahedra' of a gmsh file."""
-    import gmsh
-
-    gmsh.initialize(["", "-v", "0"])
-    try:
-        gmsh.open(str(msh))
-        types, _, node_tags = gmsh.model.mesh.getElements(3)
-        tets = node_tags[0].reshape(-1, {4: 4, 11: 10}[types[0]])  # linear or quadratic tetrahedra
-        nodes = len(gmsh.model.mesh.getNodes()[0])
-    finally:
-        gmsh.finalize()
+    gmsh = open_msh(msh)
+    types, _, node_tags = gmsh.model.mesh.getElements(3)
+    tets = node_tags[0].reshape(-1, gmsh.model.mesh.getElementProperties(types[0])[3])  # 4 or 10 nodes each
+    nodes = len(gmsh.model.mesh.getNodes()[0])
+    gmsh.clear()
     return f"{len(set(tets[:, :4].ravel()))} vertices, {nodes} nodes, {len(tets)} tetrahedra"
 
 
