@@ -181,9 +181,8 @@ def pressure_examples(problem, count: int, length: float, rng, levels: int) -> n
     loads = WallLoads(forward)
     q_groups = _group_of(problem, loads.q_points)
     v_groups = _group_of(problem, loads.v_points)
-    pressure = on_walls(loads.q_points, q_groups, smooth_fields(loads.q_points[q_groups >= 0], count, length, rng))[..., 0]
-    traction = 0.3 * on_walls(loads.v_points, v_groups, smooth_fields(loads.v_points[v_groups >= 0], count, length, rng,
-                                                                      components=forward.gdim))
+    pressure = wall_fields(loads.q_points, q_groups, count, length, rng)[..., 0]
+    traction = 0.3 * wall_fields(loads.v_points, v_groups, count, length, rng, components=forward.gdim)
     for g in np.unique(q_groups[q_groups >= 0]):  # each wall its own sign and size: one fills, one empties
         size = rng.normal(0.0, 1.0, count)[:, None]
         pressure[:, q_groups == g] += size
@@ -212,12 +211,14 @@ def pressure_examples(problem, count: int, length: float, rng, levels: int) -> n
     return out
 
 
-def on_walls(points: np.ndarray, groups: np.ndarray, values: np.ndarray) -> np.ndarray:
-    """(count, n, k): ``values`` (count, walls' nodes, k) at the nodes on a wall, 0
-    elsewhere -- the wall-load matrices see nothing else, and the fields are evaluated
-    only where they act (the default phantom: 12 % of the nodes)."""
-    out = np.zeros((values.shape[0], len(points), values.shape[2]))
-    out[:, groups >= 0] = values
+def wall_fields(points: np.ndarray, groups: np.ndarray, count: int, length: float, rng,
+                components: int = 1) -> np.ndarray:
+    """(count, n, components): smooth random fields at the nodes on a wall (``groups`` >=
+    0), 0 elsewhere -- the wall-load matrices see nothing else, and the fields are
+    evaluated only where they act (the default phantom: 12 % of the nodes)."""
+    on_wall = groups >= 0
+    out = np.zeros((count, len(points), components))
+    out[:, on_wall] = smooth_fields(points[on_wall], count, length, rng, components)
     return out
 
 
