@@ -92,7 +92,7 @@ class EstimateResult:
 def check_overlap(problem: InverseProblem) -> float:
     """Refuse a target that does not lie on the observed surface; return Phi at u = 0."""
     y = problem.observation.points
-    residual = problem.misfit.residual(y)
+    residual = problem.residual_at_rest
     observed = problem.misfit.weights > 0
     size = float(np.linalg.norm(np.ptp(y, axis=0)))
     distance = float(np.sqrt(np.mean(np.sum(residual[observed] ** 2, axis=1)))) if observed.any() else 0.0
@@ -333,8 +333,7 @@ class Estimator:
         post = self.posterior()
         undetermined = {} if post is None else post.undetermined(self.params.s_bounds())
         if len(undetermined) == 1 == len(self.params) and post.mimicked()[0]:
-            misfit = self.problem.misfit
-            phi_still = misfit.cost(misfit.residual(self.problem.observation.points))
+            phi_still = self.problem.misfit.cost(self.problem.residual_at_rest)
             if scan_sees(scanned, post.noise_std, phi_still):
                 label, best = self.params.labels[0], min(scanned)
                 self.warnings.append(

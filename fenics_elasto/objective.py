@@ -12,6 +12,7 @@ theta are the estimated constants in the order of ``Scene.estimated()``.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -82,6 +83,12 @@ class InverseProblem:
         return nodes.gather(group)
 
     # --- Phi and its gradients
+
+    @cached_property
+    def residual_at_rest(self) -> np.ndarray:
+        """The misfit's residual of the undeformed observed points (u = 0): the target's
+        overlap check and the scale of Phi at rest (estimate.py) both read it."""
+        return self.misfit.residual(self.observation.points)
 
     def _evaluate(self, theta, u, boundary: bool, gradient: bool) -> Evaluation:
         y = self.observation.positions(u)
