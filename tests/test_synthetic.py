@@ -56,9 +56,10 @@ def test_bases_too_narrow_for_unseen_examples_are_warned_about(inclusion):
     _, problem = inclusion
     narrow = train_bases(problem, [], rank=6, generator=Generator(12, seed=1, length=0.5))
     wide = train_bases(problem, [], rank=20, generator=Generator(24, seed=1, length=1.0))
-    print("held-out energy, narrow and wide bases:", narrow.held_out, wide.held_out)  # measured 0.68, 0.99
+    print("held-out energy, narrow and wide bases:", narrow.held_out, wide.held_out)  # measured 0.68 (0.69 lately), 0.99
     assert narrow.held_out < 0.8 and wide.held_out > 0.95
-    assert "keep only 68 % of the energy of examples left out" in reach_warning(narrow.held_out, 6)
+    kept = f"keep only {100 * narrow.held_out:.0f} % of the energy of examples left out"
+    assert kept in reach_warning(narrow.held_out, 6)
     assert reach_warning(wide.held_out, 20) is None and reach_warning(None, 6) is None
 
 
@@ -68,7 +69,7 @@ def test_an_estimate_with_narrow_bases_warns_and_records_their_reach(tmp_path, i
     target = InverseProblem(load_scene(source, [inclusion_ratio_4_target(tmp_path / "fine")]))
     result = estimate(target, basis=narrow.W, held_out=narrow.held_out)
     assert result["bases_fit"]["held_out_energy"] == narrow.held_out
-    assert sum("keep only 68 %" in w for w in result["warnings"]) == 1, result["warnings"]
+    assert sum(f"keep only {100 * narrow.held_out:.0f} %" in w for w in result["warnings"]) == 1, result["warnings"]
 
 
 def test_pressure_examples_are_forward_solves_at_the_drawn_materials(inclusion):
