@@ -35,7 +35,7 @@ from fenics_elasto.matching import match_surface
 from fenics_elasto.misfit import SurfaceTerm
 from fenics_elasto.objective import Evaluation, InverseProblem
 from fenics_elasto.posterior import (CHI2_95, JITTER_NOISE, JITTER_STARTS, Z95, Posterior, jitter_noise, posterior_at,
-                                    profile_interval, scan_sees, target_offset, untrusted_sides)
+                                    profile_interval, scan_excludes, scan_sees, target_offset, untrusted_sides)
 from fenics_elasto.reduction import bases_fit, missing_wall_motion, reach_warning
 from fenics_elasto.surrogate import MaterialSurrogate
 
@@ -287,6 +287,10 @@ class Estimator:
             self.warnings.append(f"{self.params.labels[0]}: Phi* is not smooth beside the answer (a rough target, or "
                                  "an inner fit with several minima): the interval is the Laplace one on that side")
         post.profile_s = np.array([ends])
+        for label, reason in post.undetermined(self.params.s_bounds(), seen=self.params.labels).items():
+            self.warnings.append(f"undetermined: {label}: {reason}, whatever the start scan showed: any value "
+                                 "within them fits the data (landmarks, reduced bases or a fixed reference E would "
+                                 "determine it)")
 
     def _allow_for_inner_minima(self, post: Posterior, fits, ends, jagged: bool) -> tuple[tuple[float, float], bool]:
         """A jagged Phi* on the surrogate: re-fit at the answer from fits met on the way,
@@ -326,12 +330,18 @@ class Estimator:
 
     def check_identifiable(self, scanned: list[float]) -> None:
         """After the scan: a constant the data do not determine (at the best full solve:
-        its 95 % interval is wider than its bounds, or the controls mimic nearly all of
-        its effect) ends the run now, not after it. A single constant the controls mimic
-        locally but whose Phi* over the scan (``scanned``) clearly rises is seen by the
-        data: it runs, with a warning that its answer rests on the rest of its effect."""
+        its 95 % interval spans its bounds, or the controls mimic nearly all of its
+        effect) ends the run now, not after it; so does a single constant whose Phi* over
+        the scan (``scanned``) stays within the noise's 95 % threshold everywhere, though
+        the Laplace interval at one value looked narrower. A single constant the controls
+        mimic locally but whose Phi* over the scan clearly rises is seen by the data: it
+        runs, with a warning that its answer rests on the rest of its effect."""
         post = self.posterior()
         undetermined = {} if post is None else post.undetermined(self.params.s_bounds())
+        if (post is not None and not undetermined and len(self.params) == 1 and self.options.scan > 1
+                and not scan_excludes(scanned, post.noise_std)):
+            undetermined = {self.params.labels[0]: "Phi* over the start scan stays within the noise's 95 % threshold: "
+                                                   "no value within its bounds is excluded"}
         if len(undetermined) == 1 == len(self.params) and post.mimicked()[0]:
             phi_still = self.problem.misfit.cost(self.problem.residual_at_rest)
             if scan_sees(scanned, post.noise_std, phi_still):

@@ -30,7 +30,7 @@ the interval are widened to theirs (measured there: 2.6x, the interval then hold
 truth). What remains unstated is a bias the residual cannot show: bases that cannot
 represent the wall motion (reduction.missing_wall_motion warns about it), a target
 offset as a whole (reported by ``target_offset``, not added). Identifiability: a
-constant whose 95 % interval is wider than its bounds is not determined by the data,
+constant whose 95 % interval spans its bounds is not determined by the data,
 nor one whose effect the controls mimic nearly all of (``separable``) -- unless, a
 single constant, its Phi* over the start scan clearly rises all the same (``scan_sees``).
 """
@@ -160,21 +160,31 @@ class Posterior:
     def undetermined(self, bounds_s: list, seen=()) -> dict[str, str]:
         """The constants the data do not determine, and why: the boundary controls can
         mimic nearly all of its effect on the data (``separable`` below SEPARABLE_MIN:
-        any value fits, noise or not), or its 95 % interval (in s) is wider than its
-        bounds (the noise hides it). The constants in ``seen`` were shown by other means
-        to be seen by the data (``scan_sees``): only their interval counts."""
+        any value fits, noise or not), or its 95 % interval (in s) spans its bounds (the
+        noise hides it: a Laplace interval as wide, a profile interval open at both).
+        The constants in ``seen`` were shown by other means to be seen by the data
+        (``scan_sees``): only their interval counts."""
         out = {}
         for label, sd, (lo, hi), share, mimicked in zip(self.labels, self.std_s, bounds_s, self.separable,
                                                         self.mimicked()):
             if mimicked and label not in seen:
                 out[label] = f"the boundary forces can mimic {100 * (1 - share):.1f} % of its effect on the data"
-            elif not np.isfinite(sd) or 2 * Z95 * sd > hi - lo:
-                out[label] = "its 95 % interval is wider than its bounds"
+            elif not np.isfinite(sd) or 2 * Z95 * sd >= (1.0 - 1e-9) * (hi - lo):
+                out[label] = "its 95 % interval spans its bounds"
         return out
 
 
 SCAN_SEES = 10.0  # scan_sees: Phi* over the scan rising this many times the 95 % threshold shows the constant
 EXACT_FIT = 1e-12  # scan_sees: Phi* changes below this share of the misfit at u = 0 are round-off of exact fits
+
+
+def scan_excludes(values, noise: float) -> bool:
+    """Does Phi* over a single constant's start scan (``values``: inner minima at values
+    spread over its bounds) rise above the noise's 95 % threshold anywhere? If not, no
+    scanned value is excluded and the 95 % interval spans the bounds: the 2D inclusion
+    at 2 % noise passed the Laplace check at the best scan value, then after a whole
+    estimate every draw's profile interval was E = 1-1000, the whole bounds."""
+    return float(np.max(values) - np.min(values)) > 0.5 * CHI2_95 * noise**2
 
 
 def scan_sees(values, noise: float, phi_still: float) -> bool:

@@ -2,6 +2,8 @@
 the body (interpolated exactly for fields the space holds), surfaces plus landmarks,
 and the full-space set-ups that cannot determine anything refused at once."""
 
+import json
+
 import numpy as np
 import pytest
 
@@ -91,6 +93,36 @@ def test_full_force_space_on_surfaces_is_refused_before_any_solve(scenes, tmp_pa
     line = proc.stderr.strip().splitlines()[-1]
     assert line.startswith("error:") and "cannot determine prostate.E" in line and "--synthetic" in line, line
     assert "scan" not in proc.stdout  # refused before the first solve
+
+
+@pytest.mark.slow
+def test_a_scan_within_the_noise_ends_after_the_scan(tmp_path, capsys):
+    """The inclusion's E ratio under noise of 2 % of the body: the Laplace interval at the
+    best scan value looked narrower than the bounds, yet after a whole estimate every
+    draw's profile interval was E = 1-1000. Phi* over the start scan already showed it:
+    it rises less than the noise's 95 % threshold anywhere."""
+    from independent import noisy_copy
+
+    source = build_scene("inclusion", tmp_path / "source")
+    fine_simulation("inclusion", tmp_path / "fine", 0.25, ["materials.inclusion.E=50.0"])
+    rng = np.random.default_rng(3)
+    noisy = {g: noisy_copy(tmp_path / "fine" / "target" / f"surface_{g}.vtp", tmp_path / f"{g}.vtp", 0.2, rng)
+             for g in ("outline", "interface")}
+    table = ", ".join(f"{g}='{path}'" for g, path in noisy.items())
+    assert main(["estimate", str(source), "--out", str(tmp_path / "out"), "--set", f"target.surfaces={{{table}}}"]) == 2
+    captured = capsys.readouterr()
+    line = captured.err.strip().splitlines()[-1]
+    assert line.startswith("error:") and "do not determine inclusion.E" in line, line
+    assert "stays within the noise's 95 % threshold" in line, line
+    assert captured.out.count("  scan ") == 6 and "outer" not in captured.out  # the scan, nothing after it
+    # insisted on: the run, loudly, and an answer whose interval is the whole bounds
+    assert main(["estimate", str(source), "--out", str(tmp_path / "out"), "--set", f"target.surfaces={{{table}}}",
+                 "--set", "optimizer.allow_undetermined=true"]) == 0
+    warned = capsys.readouterr().err
+    assert "undetermined set-up (allow_undetermined = true)" in warned or "undetermined (allow_undetermined" in warned
+    assert "its 95 % interval spans its bounds" in warned, warned
+    result = json.loads((tmp_path / "out" / "result.json").read_text())
+    assert result["uncertainty"]["inclusion.E"]["ci95"] == pytest.approx([1.0, 1000.0])
 
 
 def test_forces_that_mimic_the_material_end_after_the_scan(tmp_path, capsys):

@@ -237,15 +237,42 @@ def test_undetermined_constant_is_flagged():
     determined = Linearisation(lin.residual, A_q, rng.standard_normal((50, 1)), 0.0, 50)
     assert laplace(determined, ["tissue.nu"], [0.3], [False]).undetermined([(0.0, 0.499)]) == {}
     noisy = Linearisation(100 * lin.residual, A_q, 1e-3 * rng.standard_normal((50, 1)), 0.0, 50)
-    assert "wider than its bounds" in laplace(noisy, ["tissue.nu"], [0.3], [False]).undetermined([(0.0, 0.499)])["tissue.nu"]
+    assert "spans its bounds" in laplace(noisy, ["tissue.nu"], [0.3], [False]).undetermined([(0.0, 0.499)])["tissue.nu"]
     # seen by the scan (scan_sees): the share no longer counts, the interval still does
-    assert "wider than its bounds" in post.undetermined([(0.0, 0.499)], seen=["tissue.nu"])["tissue.nu"]
+    assert "spans its bounds" in post.undetermined([(0.0, 0.499)], seen=["tissue.nu"])["tissue.nu"]
     mimicked = Linearisation(lin.residual, A_q, A_q @ rng.standard_normal((4, 1)) + 0.02 * rng.standard_normal((50, 1)),
                              0.0, 50)
     post = laplace(mimicked, ["tissue.nu"], [0.3], [False])
     assert post.mimicked()[0] and "mimic" in post.undetermined([(0.0, 0.499)])["tissue.nu"]
     assert post.undetermined([(0.0, 0.499)], seen=["tissue.nu"]) == {}
 
+
+
+def test_a_profile_interval_open_at_both_bounds_is_undetermined():
+    """A profile interval is clipped to the bounds, so it is never wider than them: one
+    that reaches both is the undetermined one (before, its std of exactly the bounds'
+    width / 3.92 passed as determined: the 2D inclusion at 2 % noise, E = 1-1000)."""
+    from fenics_elasto.functional import Linearisation
+
+    rng = np.random.default_rng(2)
+    lin = Linearisation(0.01 * rng.standard_normal(50), rng.standard_normal((50, 4)), rng.standard_normal((50, 1)),
+                        0.0, 50)
+    post = laplace(lin, ["inclusion.E"], [np.log(50.0)], [True])
+    bounds = [(0.0, np.log(1000.0))]
+    assert post.undetermined(bounds) == {}
+    post.profile_s = np.array([[0.0, np.log(1000.0)]])
+    assert "spans its bounds" in post.undetermined(bounds)["inclusion.E"]
+    post.profile_s = np.array([[0.0, 0.999 * np.log(1000.0)]])  # excludes the stiffest values: determined
+    assert post.undetermined(bounds) == {}
+
+
+def test_a_scan_within_the_noise_threshold_excludes_nothing():
+    from fenics_elasto.posterior import CHI2_95, scan_excludes
+
+    noise = 0.2
+    threshold = 0.5 * CHI2_95 * noise**2
+    assert not scan_excludes([1.0, 1.0 + 0.9 * threshold, 1.0 + 0.3 * threshold], noise)
+    assert scan_excludes([1.0, 1.0 + 1.1 * threshold, 1.0 + 0.3 * threshold], noise)
 
 
 def test_an_undetermined_constant_leaves_the_others_patch_std_and_offset_finite():
