@@ -1,6 +1,6 @@
 """Are the 95 % intervals calibrated? Coverage and sigma against the spread, under noise.
 
-    python benchmarks/coverage.py [--draws 30] [--cases letter,inclusion] [--noise 0.005,0.02]
+    python benchmarks/coverage.py [--draws 30] [--cases letter,inclusion] [--noise 0.005,0.02] [--truth T]
 
 For each case a target is simulated once on a finer mesh (letter A: h = 0.2 against the
 source's 0.4, true nu = 0.3; inclusion: h = 0.25 against 0.5, true E ratio 5), then for
@@ -44,6 +44,16 @@ CASES = {  # name: (scene, source h, target h, truth settings, estimated label, 
     "letter": ("letter-a", 0.4, 0.2, {"materials.letter.nu": 0.3}, "letter.nu", 0.3, 10.0),
     "inclusion": ("inclusion", 0.5, 0.25, {"materials.inclusion.E": 50.0}, "inclusion.E", 5.0, 10.0),
 }
+
+
+def with_truth(name: str, value: float | None) -> None:
+    """Another true value for a case (``--truth``: a case the rules were not chosen on);
+    an E ratio scales the inclusion's E, the reference region's staying."""
+    if value is None:
+        return
+    scene_name, h, fine, settings, label, truth, size = CASES[name]
+    key, setting = next(iter(settings.items()))
+    CASES[name] = (scene_name, h, fine, {key: setting * value / truth}, label, value, size)
 
 
 def target_folder(tmp: Path, name: str) -> tuple[Path, dict[str, Path]]:
@@ -123,6 +133,7 @@ def main():
     parser.add_argument("--draws", type=int, default=30)
     parser.add_argument("--cases", default="letter,inclusion")
     parser.add_argument("--noise", default="0,0.005,0.02", help="noise std as fractions of the body size")
+    parser.add_argument("--truth", type=float, help="another true value (nu, or the E ratio) for every case run")
     parser.add_argument("--known-noise", action="store_true", help="give the estimate the true noise ([target] noise)")
     args = parser.parse_args()
     levels = [float(v) for v in args.noise.split(",")]
@@ -133,6 +144,7 @@ def main():
     print("|" + "---|" * 17)
     with tempfile.TemporaryDirectory() as tmp:
         for name in args.cases.split(","):
+            with_truth(name, args.truth)
             one_case(Path(tmp), name, levels, args.draws, args.known_noise)
 
 

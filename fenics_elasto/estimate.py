@@ -190,6 +190,7 @@ class Estimator:
         self.surrogate = SurrogateProfile(self.profile) if surrogate is not None else None
         self.outer_iterations = 0
         self.warnings: list[str] = []
+        self.undetermined: dict[str, str] = {}  # constants found undetermined and run anyway (allow_undetermined)
 
     def _inner(self):
         o = self.options
@@ -286,8 +287,10 @@ class Estimator:
         if jagged:
             self.warnings.append(f"{self.params.labels[0]}: Phi* is not smooth beside the answer (a rough target, or "
                                  "an inner fit with several minima): the interval is the Laplace one on that side")
-        post.profile_s = np.array([ends])
+        post.set_profile(ends, bounds)
         for label, reason in post.undetermined(self.params.s_bounds(), seen=self.params.labels).items():
+            if label in self.undetermined:
+                continue  # said after the scan already
             self.warnings.append(f"undetermined: {label}: {reason}, whatever the start scan showed: any value "
                                  "within them fits the data (landmarks, reduced bases or a fixed reference E would "
                                  "determine it)")
@@ -360,6 +363,7 @@ class Estimator:
                    f"matched surfaces), or set optimizer.allow_undetermined = true")
         if not self.options.allow_undetermined:
             raise UserError(message)
+        self.undetermined.update(undetermined)
         self.warnings.append("undetermined (allow_undetermined = true): " + message.split(": ", 1)[1].split("; fix")[0])
 
     def close(self) -> None:

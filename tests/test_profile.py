@@ -260,10 +260,26 @@ def test_a_profile_interval_open_at_both_bounds_is_undetermined():
     post = laplace(lin, ["inclusion.E"], [np.log(50.0)], [True])
     bounds = [(0.0, np.log(1000.0))]
     assert post.undetermined(bounds) == {}
-    post.profile_s = np.array([[0.0, np.log(1000.0)]])
+    post.set_profile([0.0, np.log(1000.0)], bounds[0])
     assert "spans its bounds" in post.undetermined(bounds)["inclusion.E"]
-    post.profile_s = np.array([[0.0, 0.999 * np.log(1000.0)]])  # excludes the stiffest values: determined
+    post.set_profile([0.0, 0.999 * np.log(1000.0)], bounds[0])  # excludes the stiffest values: determined
     assert post.undetermined(bounds) == {}
+
+
+def test_a_skewed_profile_interval_gives_the_std_of_its_mean_information():
+    """sigma from a profile interval closed at both ends: 1/sqrt of the mean of the two
+    sides' information (Z95 / arm)^2; open at a bound: the half-width / Z95."""
+    from fenics_elasto.posterior import Z95, profile_std
+
+    s = np.array([1.0])
+    closed = np.array([[False, False]])
+    assert profile_std(s, np.array([[0.6, 1.4]]), closed)[0] == pytest.approx(0.4 / Z95)  # symmetric: the arm
+    a, b = 0.31 * Z95, 0.88 * Z95  # the inclusion's arms at 0.5 % noise
+    sigma = profile_std(s, np.array([[1.0 - a, 1.0 + b]]), closed)[0]
+    assert sigma == pytest.approx(1.0 / np.sqrt((1 / 0.31**2 + 1 / 0.88**2) / 2))  # 0.414
+    assert 0.31 < sigma < (0.31 + 0.88) / 2  # nearer the tight side than the half-width
+    assert profile_std(s, np.array([[1.0 - a, 3.0]]), np.array([[False, True]]))[0] == pytest.approx((a + 2.0) / (2 * Z95))
+    assert profile_std(s, np.array([[0.0, 3.0]]), np.array([[True, True]]))[0] == pytest.approx(3.0 / (2 * Z95))
 
 
 def test_a_scan_within_the_noise_threshold_excludes_nothing():
