@@ -344,7 +344,7 @@ class Estimator:
         if (post is not None and not undetermined and len(self.params) == 1 and self.options.scan > 1
                 and not scan_excludes(scanned, post.noise_std)):
             undetermined = {self.params.labels[0]: "Phi* over the start scan stays within the noise's 95 % threshold: "
-                                                   "no value within its bounds is excluded"}
+                                                   "none of the values scanned across its bounds is excluded"}
         if len(undetermined) == 1 == len(self.params) and post.mimicked()[0]:
             phi_still = self.problem.misfit.cost(self.problem.residual_at_rest)
             if scan_sees(scanned, post.noise_std, phi_still):
