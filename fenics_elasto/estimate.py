@@ -34,8 +34,9 @@ from fenics_elasto.interrupts import Interrupted
 from fenics_elasto.matching import match_surface
 from fenics_elasto.misfit import SurfaceTerm
 from fenics_elasto.objective import Evaluation, InverseProblem
-from fenics_elasto.posterior import (CHI2_95, JITTER_NOISE, JITTER_STARTS, Z95, Posterior, jitter_noise, posterior_at,
-                                    profile_interval, scan_excludes, scan_sees, target_offset, untrusted_sides)
+from fenics_elasto.posterior import (JITTER_NOISE, JITTER_STARTS, Z95, Posterior, jitter_noise, posterior_at,
+                                    profile_interval, scan_excludes, scan_sees, target_offset, threshold,
+                                    untrusted_sides)
 from fenics_elasto.reduction import bases_fit, missing_wall_motion, reach_warning
 from fenics_elasto.surrogate import MaterialSurrogate
 
@@ -327,7 +328,7 @@ class Estimator:
                  f"({time.perf_counter() - start:.1f} s)")
         self.warnings.append(
             f"{self.params.labels[0]}: the inner fit ends in minima up to {post.inner_spread:.3g} apart in Phi* from "
-            f"different starts ({post.inner_spread / (0.5 * CHI2_95 * post.noise_std**2):.2g}x what the noise moves in "
+            f"different starts ({post.inner_spread / threshold(post.noise_std):.2g}x what the noise moves in "
             "a 95 % interval: a target rougher than its sampling): the interval allows for them")
         return (max(min(low, s_hat - reach), bounds[0]), min(max(high, s_hat + reach), bounds[1])), False
 

@@ -194,13 +194,19 @@ SCAN_SEES = 10.0  # scan_sees: Phi* over the scan rising this many times the 95 
 EXACT_FIT = 1e-12  # scan_sees: Phi* changes below this share of the misfit at u = 0 are round-off of exact fits
 
 
+def threshold(noise: float) -> float:
+    """How far Phi* rises above its minimum at the ends of the 95 % profile interval,
+    CHI2_95 noise^2 / 2 (Phi* / noise^2 is the negative log-likelihood)."""
+    return 0.5 * CHI2_95 * noise**2
+
+
 def scan_excludes(values, noise: float) -> bool:
     """Does Phi* over a single constant's start scan (``values``: inner minima at values
     spread over its bounds) rise above the noise's 95 % threshold anywhere? If not, no
     scanned value is excluded and the 95 % interval spans the bounds: the 2D inclusion
     at 2 % noise passed the Laplace check at the best scan value, then after a whole
     estimate every draw's profile interval was E = 1-1000, the whole bounds."""
-    return float(np.max(values) - np.min(values)) > 0.5 * CHI2_95 * noise**2
+    return float(np.max(values) - np.min(values)) > threshold(noise)
 
 
 def scan_sees(values, noise: float, phi_still: float) -> bool:
@@ -213,7 +219,7 @@ def scan_sees(values, noise: float, phi_still: float) -> bool:
     (the full force space on matched walls), at round-off of ``phi_still``, the misfit
     of the undeformed source."""
     rise = float(np.max(values) - np.min(values))
-    return rise > max(SCAN_SEES * 0.5 * CHI2_95 * noise**2, EXACT_FIT * phi_still)
+    return rise > max(SCAN_SEES * threshold(noise), EXACT_FIT * phi_still)
 
 
 def posterior_at(profile, result, noise: float | None = None, floor: float = 0.0) -> Posterior | None:
