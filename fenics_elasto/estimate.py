@@ -191,7 +191,7 @@ class Estimator:
         self.surrogate = SurrogateProfile(self.profile) if surrogate is not None else None
         self.outer_iterations = 0
         self.warnings: list[str] = []
-        self.undetermined: dict[str, str] = {}  # constants found undetermined and run anyway (allow_undetermined)
+        self.undetermined: set[str] = set()  # constants found undetermined and run anyway (allow_undetermined)
 
     def _inner(self):
         o = self.options
