@@ -37,6 +37,15 @@ def matched_vertices_only(scene, model: ElasticModel) -> bool:
     return rule == "vertices"
 
 
+def elementwise_min(comm, values: np.ndarray) -> np.ndarray:
+    """The minimum over the ranks of each entry. (mpi4py's lower-case allreduce with
+    MPI.MIN compares whole arrays with Python's min, which numpy refuses.)"""
+    values = np.ascontiguousarray(values)
+    out = np.empty_like(values)
+    comm.Allreduce(values, out, op=MPI.MIN)
+    return out
+
+
 class PointProbe:
     """u at fixed points anywhere in the mesh (each point evaluated on one rank).
 
@@ -51,14 +60,14 @@ class PointProbe:
         self.gdim = mesh.geometry.dim
         self.count = len(points)
         cells, distance = self._closest_cells(mesh, points)
-        best = self.comm.allreduce(distance, op=MPI.MIN)
+        best = elementwise_min(self.comm, distance)
         require(np.all(best <= tolerance), f"{int(np.sum(best > tolerance))} point(s) lie outside the body "
                 f"(worst {best.max():.3g} from it, tolerance {tolerance:.3g}): the first is "
                 f"{np.round(points[np.argmax(best > tolerance)], 6).tolist()}")
         node, at_node = self._nodes_at(points)
         mine = (cells >= 0) & (distance == best)
-        claim = self.comm.allreduce(np.where(mine, self.comm.rank, self.comm.size), op=MPI.MIN)
-        node_claim = self.comm.allreduce(np.where(at_node, self.comm.rank, self.comm.size), op=MPI.MIN)
+        claim = elementwise_min(self.comm, np.where(mine, self.comm.rank, self.comm.size))
+        node_claim = elementwise_min(self.comm, np.where(at_node, self.comm.rank, self.comm.size))
         claim = np.where(node_claim < self.comm.size, node_claim, claim)
         self.rows = np.flatnonzero(claim == self.comm.rank)
         self.blocks, self.weights = self._weights(mesh, points[self.rows], cells[self.rows])

@@ -3,11 +3,12 @@ the body (interpolated exactly for fields the space holds), surfaces plus landma
 and the full-space set-ups that cannot determine anything refused at once."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from conftest import run_cli
+from conftest import run_cli, run_mpi_script
 from fenics_elasto.cli import main
 from fenics_elasto.elasticity import ElasticModel
 from fenics_elasto.errors import UserError
@@ -18,6 +19,8 @@ from fenics_elasto.observation import Observation, PointProbe
 from fenics_elasto.scene import load_scene
 from fenics_elasto.simulate import probe
 from targets import fine_simulation
+
+MPI_LANDMARKS = Path(__file__).parent / "mpi" / "landmarks.py"
 
 
 def test_auto_matches_vertices_on_straight_p2_and_every_node_on_curved(scenes, tmp_path):
@@ -69,6 +72,28 @@ def test_surfaces_plus_interior_landmarks(tmp_path):
     assert result["distances"]["landmarks"]["max"] < 5e-3
     assert "uncertainty" in result.record and result["uncertainty"]["letter.nu"]["std"] > 0
     assert 0 < result["uncertainty"]["seconds"] < result["wall_time_s"]  # its own share of the time
+
+
+def test_surfaces_plus_interior_landmarks_on_two_ranks_equal_serial(tmp_path):
+    """The same estimate under mpiexec -n 2: the landmarks are evaluated each by the rank
+    whose cells hold it -- both ranks hold some -- and the answer is the serial one. (A
+    traceback before any solve until 2026-12-02: the ranks' distances were reduced with
+    Python's min over arrays.)"""
+    source = build_scene("letter-a", tmp_path / "source")
+    _, sim = fine_simulation("letter-a", tmp_path / "fine", 0.2, ["materials.letter.nu=0.35"])
+    points = np.array([[1.3, 1.5], [4.0, 9.0], [6.4, 1.2], [1.0, 0.4], [7.0, 0.5]])
+    moved = points + probe(sim.u, points)
+    landmarks = tmp_path / "lm.csv"
+    landmarks.write_text("".join(f"{a},{b},{c},{d}\n" for (a, b), (c, d) in zip(points, moved)))
+    target = tmp_path / "fine" / "target" / "surface.vtp"
+    runs = {}
+    for ranks in (1, 2):
+        run_mpi_script(MPI_LANDMARKS, ranks, source, target, landmarks, tmp_path / f"r{ranks}.npz", timeout=180)
+        runs[ranks] = np.load(tmp_path / f"r{ranks}.npz")
+    assert set(runs[2]["owner"]) == {0, 1}, runs[2]["owner"]  # landmarks on either rank
+    assert abs(runs[1]["theta"][0] - 0.35) < 0.005
+    assert np.abs(runs[2]["theta"] - runs[1]["theta"]).max() < 1e-8
+    assert np.abs(runs[2]["forces"] - runs[1]["forces"]).max() < 1e-8 * np.abs(runs[1]["forces"]).max()
 
 
 def test_a_landmark_outside_the_body_is_one_line(scenes, tmp_path, capsys):
