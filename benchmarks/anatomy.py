@@ -19,10 +19,11 @@ import numpy as np
 import pyvista as pv
 
 import fenics_elasto  # noqa: F401  (imports dolfinx_solver before petsc4py)
-from fenics_elasto.anatomy import build_scene_from_spec
-from fenics_elasto.logs import show
+from fenics_elasto.mesh.anatomy import build_scene_from_spec
+from fenics_elasto.mesh.builtin import PROSTATE_STL
+from fenics_elasto.util.logs import show
 
-PROSTATE = Path(fenics_elasto.__file__).parent / "meshes" / "prostate" / "prostate.stl"
+PROSTATE = PROSTATE_STL
 
 
 def ellipsoid(center, radii, nsub):

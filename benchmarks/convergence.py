@@ -18,14 +18,14 @@ import time
 from pathlib import Path
 
 import fenics_elasto  # noqa: F401
-from fenics_elasto.meshing import ORGAN_SIZE, PROSTATE_SIZE, build_scene
-from fenics_elasto.objective import InverseProblem
-from fenics_elasto.reduction import train_bases
-from fenics_elasto.scene import load_scene
+from fenics_elasto.mesh.builtin import ORGAN_SIZE, PROSTATE_SIZE, build_scene
+from fenics_elasto.inverse.objective import InverseProblem
+from fenics_elasto.inverse.reduction.bases import train_bases
+from fenics_elasto.model.scene import load_scene
 
-from fenics_elasto.study import SIZE, recovered, run_case  # noqa: E402
+from fenics_elasto.app.study import SIZE, recovered, run_case  # noqa: E402
 
-from fenics_elasto.study import simulate_examples, simulate_targets  # noqa: E402
+from fenics_elasto.app.study import simulate_examples, simulate_targets  # noqa: E402
 
 TRUE_E = 50.0
 TARGETS = ((1.3, 4), (1.0, 4), (0.8, 4), (0.8, 8))  # (h of the target mesh, pieces per facet edge)

@@ -30,12 +30,12 @@ from pathlib import Path
 import numpy as np
 
 import fenics_elasto  # noqa: F401
-from fenics_elasto.estimate import Options, estimate
-from fenics_elasto.io import write_matched_surfaces
-from fenics_elasto.meshing import build_scene
-from fenics_elasto.objective import InverseProblem
-from fenics_elasto.scene import load_scene
-from fenics_elasto.simulate import simulate
+from fenics_elasto.inverse.estimator import Options, estimate
+from fenics_elasto.files.writers import write_matched_surfaces
+from fenics_elasto.mesh.builtin import build_scene
+from fenics_elasto.inverse.objective import InverseProblem
+from fenics_elasto.model.scene import load_scene
+from fenics_elasto.model.simulate import simulate
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 import independent as ind  # noqa: E402  (tests/independent.py: noisy copies of targets)

@@ -20,11 +20,11 @@ import ufl
 
 import dolfinx.fem.petsc
 from dolfinx import fem
-from fenics_elasto.elasticity import ElasticModel, epsilon, stiffness_quadrature
-from fenics_elasto.meshing import build_scene
-from fenics_elasto.scene import load_scene
-from fenics_elasto.simulate import material_values
-from fenics_elasto.solvers import DirectSolver, SolverSettings, SolverStats
+from fenics_elasto.model.elasticity import ElasticModel, epsilon, stiffness_quadrature
+from fenics_elasto.mesh.builtin import build_scene
+from fenics_elasto.model.scene import load_scene
+from fenics_elasto.model.simulate import material_values
+from fenics_elasto.model.solvers import DirectSolver, SolverSettings, SolverStats
 
 
 def best_of(work, repeat=3):

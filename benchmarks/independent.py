@@ -31,7 +31,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 import independent as ind  # noqa: E402
 
-from fenics_elasto.gmsh_models import open_msh  # noqa: E402
+from fenics_elasto.mesh.gmsh_models import open_msh  # noqa: E402
 
 CLI = Path(sys.executable).parent / "fenics-elasto"
 

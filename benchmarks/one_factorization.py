@@ -18,8 +18,8 @@ from unittest import mock
 import numpy as np
 
 import fenics_elasto  # noqa: F401
-from fenics_elasto.study import TRUE_E, TargetFiles, run_case
-from fenics_elasto.surrogate import MaterialSurrogate
+from fenics_elasto.app.study import TRUE_E, TargetFiles, run_case
+from fenics_elasto.inverse.surrogate import MaterialSurrogate
 
 GROUPS = ("bladder", "prostate_surface", "rectum")
 

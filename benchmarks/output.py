@@ -16,11 +16,12 @@ import time
 from pathlib import Path
 
 import fenics_elasto  # noqa: F401  (imports dolfinx_solver first)
-from fenics_elasto.io import write_matched_surfaces, write_solution
-from fenics_elasto.meshing import build_scene
-from fenics_elasto.outputs import prepare_folder
-from fenics_elasto.scene import load_scene
-from fenics_elasto.simulate import simulate
+from fenics_elasto.app.results import write_solution
+from fenics_elasto.files.writers import write_matched_surfaces
+from fenics_elasto.mesh.builtin import build_scene
+from fenics_elasto.files.outputs import prepare_folder
+from fenics_elasto.model.scene import load_scene
+from fenics_elasto.model.simulate import simulate
 
 
 def measure(size: float, pieces: int | None, tmp: Path) -> dict:

@@ -23,20 +23,19 @@ from pathlib import Path
 import numpy as np
 
 import fenics_elasto  # noqa: F401
-from fenics_elasto.estimate import Estimator, Options, surface_matched_start
-from fenics_elasto.io import write_matched_surfaces
-from fenics_elasto.meshing import build_scene
-from fenics_elasto.objective import InverseProblem
-from fenics_elasto.scene import load_scene
-from fenics_elasto.simulate import simulate
-from fenics_elasto.surrogate import MaterialSurrogate
+from fenics_elasto.inverse.estimator import Estimator, Options, surface_matched_start
+from fenics_elasto.files.writers import write_matched_surfaces
+from fenics_elasto.mesh.builtin import build_scene
+from fenics_elasto.inverse.objective import InverseProblem
+from fenics_elasto.model.scene import load_scene
+from fenics_elasto.model.simulate import simulate
+from fenics_elasto.inverse.surrogate import MaterialSurrogate
 from forward import best_of  # benchmarks/ is the script's folder
 
-from fenics_elasto.study import (FINE, TRUE_E, rank_sweep, rank_table, recovered, run_case,  # noqa: E402
-                                 speedup_table)
+from fenics_elasto.app.study import FINE, TRUE_E, rank_sweep, rank_table, recovered, run_case, speedup_table
 
-from fenics_elasto.study import simulate_examples, simulate_targets  # noqa: E402
-from fenics_elasto.reduction import train_bases  # noqa: E402
+from fenics_elasto.app.study import simulate_examples, simulate_targets  # noqa: E402
+from fenics_elasto.inverse.reduction.bases import train_bases  # noqa: E402
 
 
 def main():

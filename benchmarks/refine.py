@@ -12,10 +12,10 @@ import time
 
 import numpy as np
 
-from fenics_elasto.elasticity import ElasticModel
-from fenics_elasto.meshing import build_scene
-from fenics_elasto.refine import refine_scene, transfer_bases
-from fenics_elasto.scene import load_scene
+from fenics_elasto.model.elasticity import ElasticModel
+from fenics_elasto.mesh.builtin import build_scene
+from fenics_elasto.model.refine import refine_scene, transfer_bases
+from fenics_elasto.model.scene import load_scene
 
 
 def timed(work):

@@ -29,12 +29,12 @@ from pathlib import Path
 import fenics_elasto  # noqa: F401  (imports dolfinx_solver before petsc4py)
 from mpi4py import MPI
 
-from fenics_elasto.elasticity import ElasticModel
-from fenics_elasto.logs import quiet
-from fenics_elasto.meshing import build_scene
-from fenics_elasto.scene import load_scene
-from fenics_elasto.simulate import material_values, simulate
-from fenics_elasto.solvers import SolverSettings, mumps_analysis
+from fenics_elasto.model.elasticity import ElasticModel
+from fenics_elasto.util.logs import quiet
+from fenics_elasto.mesh.builtin import build_scene
+from fenics_elasto.model.scene import load_scene
+from fenics_elasto.model.simulate import material_values, simulate
+from fenics_elasto.model.solvers import SolverSettings, mumps_analysis
 
 HERE = Path(__file__).resolve()
 BIN = Path(sys.executable).parent

@@ -27,13 +27,13 @@ import numpy as np
 import fenics_elasto  # noqa: F401  (imports dolfinx_solver before petsc4py)
 from petsc4py import PETSc
 
-from fenics_elasto.elasticity import ElasticModel
-from fenics_elasto.logs import quiet
-from fenics_elasto.meshing import build_scene
-from fenics_elasto.scene import load_scene
-from fenics_elasto.simulate import material_values
-from fenics_elasto.solvers import (DirectSolver, IterativeSolver, SolverError, SolverSettings, SolverStats, WarmStart,
-                                   rigid_body_modes)
+from fenics_elasto.model.elasticity import ElasticModel
+from fenics_elasto.util.logs import quiet
+from fenics_elasto.mesh.builtin import build_scene
+from fenics_elasto.model.scene import load_scene
+from fenics_elasto.model.simulate import material_values
+from fenics_elasto.model.solvers import (DirectSolver, IterativeSolver, SolverError, SolverSettings, SolverStats,
+    WarmStart, rigid_body_modes)
 
 EVENTS = {"lu": ("MatLUFactorSym", "MatLUFactorNum"), "cholesky": ("MatCholFctrSym", "MatCholFctrNum")}
 

@@ -17,12 +17,12 @@ from pathlib import Path
 import numpy as np
 
 import fenics_elasto  # noqa: F401
-from fenics_elasto.estimate import Estimator, Options, estimate
-from fenics_elasto.io import write_matched_surfaces
-from fenics_elasto.meshing import build_scene
-from fenics_elasto.objective import InverseProblem
-from fenics_elasto.scene import load_scene
-from fenics_elasto.simulate import simulate
+from fenics_elasto.inverse.estimator import Estimator, Options, estimate
+from fenics_elasto.files.writers import write_matched_surfaces
+from fenics_elasto.mesh.builtin import build_scene
+from fenics_elasto.inverse.objective import InverseProblem
+from fenics_elasto.model.scene import load_scene
+from fenics_elasto.model.simulate import simulate
 
 CASES = (0.1, 0.25, 0.4, 0.49)
 

@@ -30,13 +30,13 @@ from pathlib import Path
 import numpy as np
 
 import fenics_elasto  # noqa: F401
-from fenics_elasto.atlas import atlas_surfaces
-from fenics_elasto.meshing import ORGAN_SIZE, PROSTATE_SIZE, build_scene
-from fenics_elasto.objective import InverseProblem
-from fenics_elasto.reduction import train_atlas_bases, train_bases
-from fenics_elasto.scene import load_scene
-from fenics_elasto.study import (FINE, SIZE, TRUE_E, iterations, rank_sweep, rank_table, recovered, run_case,
-                                 simulate_examples, simulate_targets, speedup_table, table1)
+from fenics_elasto.mesh.atlas import atlas_surfaces
+from fenics_elasto.mesh.builtin import ORGAN_SIZE, PROSTATE_SIZE, build_scene
+from fenics_elasto.inverse.objective import InverseProblem
+from fenics_elasto.inverse.reduction.bases import train_atlas_bases, train_bases
+from fenics_elasto.model.scene import load_scene
+from fenics_elasto.app.study import (FINE, SIZE, TRUE_E, iterations, rank_sweep, rank_table, recovered, run_case,
+    simulate_examples, simulate_targets, speedup_table, table1)
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -135,7 +135,7 @@ def render_bases(problem: InverseProblem, W: np.ndarray, path: Path) -> None:
     """Arrows of the first two bases on the loaded nodes (bladder and rectum)."""
     import pyvista as pv
 
-    from fenics_elasto.render import offscreen_plotter
+    from fenics_elasto.app.render import offscreen_plotter
 
     points = problem.loaded.gather(problem.loaded.coords)
     plotter = offscreen_plotter(shape=(1, 2), window_size=(1600, 800))

@@ -36,9 +36,10 @@ from pathlib import Path
 import numpy as np
 
 import fenics_elasto  # noqa: F401  (before dolfinx: the wheel's MPI/PETSc order)
-from fenics_elasto.cli import main as cli
+from fenics_elasto.app.cli import main as cli
+from fenics_elasto.mesh.builtin import PROSTATE_STL
 
-PROSTATE = Path(fenics_elasto.__file__).parent / "meshes" / "prostate" / "prostate.stl"
+PROSTATE = PROSTATE_STL
 TISSUE_E = 10.0  # the reference material written by `scene` (kPa, say)
 ORGANS = ("bladder", "rectum", "prostate_surface")
 GAP = 5.0  # mm between the prostate and the bladder / rectum
@@ -254,7 +255,7 @@ def e_signal(source: Path, out: Path, ratio: float, rectum_centre) -> dict:
     cannot be sharper than its misfit floor allows against this."""
     import pyvista as pv
 
-    from fenics_elasto.render import distance_to
+    from fenics_elasto.app.render import distance_to
 
     surfaces = {}
     for factor in (1.0, 1.1):
@@ -273,7 +274,7 @@ def targets_picture(kinds: dict, path: Path) -> Path:
     """The prostate as each kind of target gives it, side by side."""
     import pyvista as pv
 
-    from fenics_elasto.render import offscreen_plotter
+    from fenics_elasto.app.render import offscreen_plotter
 
     plotter = offscreen_plotter(shape=(1, len(kinds)), window_size=(500 * len(kinds), 520))
     for k, (kind, folder) in enumerate(kinds.items()):

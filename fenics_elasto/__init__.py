@@ -6,7 +6,7 @@ The DOLFINx wheel requires ``dolfinx_solver`` to be imported before ``dolfinx`` 
 
 import dolfinx_solver  # noqa: F401  (must precede dolfinx / petsc4py)
 
-from fenics_elasto.errors import UserError
-from fenics_elasto.scene import Scene, load_scene
+from fenics_elasto.util.errors import UserError
+from fenics_elasto.model.scene import Scene, load_scene
 
 __all__ = ["Scene", "UserError", "load_scene"]

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 import fenics_elasto  # noqa: F401  (imports dolfinx_solver first)
-from fenics_elasto.gmsh_models import fresh_gmsh_model
+from fenics_elasto.mesh.gmsh_models import fresh_gmsh_model
 
 CORNERS = np.array([[i & 1, i >> 1 & 1, i >> 2 & 1] for i in range(8)], float)
 TETS = np.array([[0, a, a | b, 7] for a, b, _ in permutations((1, 2, 4))])

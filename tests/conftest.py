@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 import fenics_elasto  # noqa: F401  (imports dolfinx_solver first)
-from fenics_elasto.meshing import build_scene
+from fenics_elasto.mesh.builtin import build_scene
 
 ROOT = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
@@ -57,7 +57,7 @@ def assert_picture(path: Path, min_coverage: float = 0.005) -> None:
 @contextlib.contextmanager
 def logged(lines: list):
     """The library's progress and warning lines, collected into ``lines``."""
-    from fenics_elasto.logs import log
+    from fenics_elasto.util.logs import log
 
     class Keep(logging.Handler):
         def emit(self, record):

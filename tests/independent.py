@@ -37,7 +37,7 @@ import numpy as np
 import scipy.sparse.linalg as spla
 from scipy.spatial import cKDTree
 
-GEO_DIR = Path(__file__).resolve().parents[1] / "fenics_elasto" / "meshes"
+GEO_DIR = Path(__file__).resolve().parents[1] / "meshes"
 
 # --------------------------------------------------------------------------- gmsh -> scikit-fem
 
@@ -747,7 +747,7 @@ def phantom_model(seed: int, walls: float, prostate: float, far: float) -> Elast
     surfaces and HXT volumes (the toolkit: Frontal-Delaunay and Delaunay), element
     size ``walls`` at the bladder and rectum, ``prostate`` at the prostate, ``far``
     elsewhere."""
-    from fenics_elasto.meshing import phantom_organs
+    from fenics_elasto.mesh.builtin import phantom_organs
 
     with gmsh_model("phantom-truth") as gmsh:
         faces = _phantom_geometry(gmsh, phantom_organs(seed))
@@ -810,7 +810,7 @@ def phantom(out, prostate_E: float, seed: int = 0, E: float = 10.0, nu: float = 
     prostate (prostate_E, prostate_nu). Files: ``bladder``, ``prostate_surface``,
     ``rectum`` (the displaced exact surfaces, triangles about ``spacing`` apart) and
     ``fiducials`` (landmark CSV of 4 points inside the prostate)."""
-    from fenics_elasto.meshing import phantom_organs
+    from fenics_elasto.mesh.builtin import phantom_organs
 
     params = {"prostate_E": prostate_E, "seed": seed, "E": E, "nu": nu, "prostate_nu": prostate_nu, "ripple": ripple,
               "walls": walls, "prostate": prostate, "far": far, "spacing": spacing}

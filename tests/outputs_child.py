@@ -18,9 +18,9 @@ import time
 
 from mpi4py import MPI
 
-from fenics_elasto.errors import UserError
-from fenics_elasto.interrupts import Interrupted, check_interrupt, handle_signals
-from fenics_elasto.outputs import prepare_folder
+from fenics_elasto.util.errors import UserError
+from fenics_elasto.util.interrupts import Interrupted, check_interrupt, handle_signals
+from fenics_elasto.files.outputs import prepare_folder
 
 COMM = MPI.COMM_WORLD
 CHUNKS, CHUNK = 8, 1 << 16

@@ -2,10 +2,10 @@
 
 from pathlib import Path
 
-from fenics_elasto.io import write_matched_surfaces
-from fenics_elasto.meshing import build_scene
-from fenics_elasto.scene import load_scene
-from fenics_elasto.simulate import simulate, write_landmarks_for
+from fenics_elasto.files.writers import write_matched_surfaces
+from fenics_elasto.mesh.builtin import build_scene
+from fenics_elasto.model.scene import load_scene
+from fenics_elasto.model.simulate import simulate, write_landmarks_for
 
 
 def fine_simulation(name: str, folder: Path, size: float, settings=()):

@@ -14,12 +14,13 @@ from scipy.spatial import cKDTree
 
 import dolfinx
 from conftest import logged, run_cli
-from fenics_elasto.anatomy import build_scene_from_spec
-from fenics_elasto.anatomy_repair import closed_shells, enclosed_volume
-from fenics_elasto.cli import main
-from fenics_elasto.scene import load_scene
+from fenics_elasto.mesh.anatomy import build_scene_from_spec
+from fenics_elasto.mesh.builtin import PROSTATE_STL
+from fenics_elasto.mesh.repair import closed_shells, enclosed_volume
+from fenics_elasto.app.cli import main
+from fenics_elasto.model.scene import load_scene
 
-PROSTATE = Path(__file__).resolve().parents[1] / "fenics_elasto" / "meshes" / "prostate" / "prostate.stl"
+PROSTATE = PROSTATE_STL
 
 
 def sphere(center, radius, nsub=4) -> pv.PolyData:
@@ -368,9 +369,9 @@ surface = "b.stl"
 def test_gmsh_failure_is_one_line_naming_a_file(tmp_path):
     """Surfaces that cross (the checks before meshing bypassed): gmsh's own error, with
     the file behind the surface it names, as a UserError."""
-    from fenics_elasto.anatomy import box_shell, mesh_shells
-    from fenics_elasto.anatomy_repair import Shell
-    from fenics_elasto.errors import UserError
+    from fenics_elasto.mesh.anatomy import box_shell, mesh_shells
+    from fenics_elasto.mesh.repair import Shell
+    from fenics_elasto.util.errors import UserError
 
     def shell(centre, role, name):
         s = sphere(centre, 5.0, nsub=3)
@@ -474,8 +475,8 @@ def phantom_files(folder: Path) -> Path:
     """The built-in phantom's shapes (phantom_organs(0), its 12 x 10 x 10 cm box) written as
     surface files, and a spec that makes them a scene: prostate a region; bladder, rectum
     and both bones cavities."""
-    from fenics_elasto.meshing import FAR_SIZE, ORGAN_SIZE, PHANTOM_HALF, phantom_organs
-    from fenics_elasto.study import SIZE
+    from fenics_elasto.mesh.builtin import FAR_SIZE, ORGAN_SIZE, PHANTOM_HALF, phantom_organs
+    from fenics_elasto.app.study import SIZE
 
     organs = phantom_organs(0)
 
@@ -502,10 +503,10 @@ def test_phantom_from_surface_files_gives_the_built_in_phantoms_E(tmp_path):
     and `scene` from the same shapes as STL files -- trained alike (12 example scans),
     estimating prostate E = 50 from one held-out target on a finer built-in mesh:
     measured 51.59 (built-in) and 49.58 (scene)."""
-    from fenics_elasto.meshing import build_scene as build_builtin
-    from fenics_elasto.objective import InverseProblem
-    from fenics_elasto.reduction import train_bases
-    from fenics_elasto.study import FINE, SIZE, recovered, run_case, simulate_examples, simulate_targets
+    from fenics_elasto.mesh.builtin import build_scene as build_builtin
+    from fenics_elasto.inverse.objective import InverseProblem
+    from fenics_elasto.inverse.reduction.bases import train_bases
+    from fenics_elasto.app.study import FINE, SIZE, recovered, run_case, simulate_examples, simulate_targets
 
     builtin = build_builtin("prostate-phantom", tmp_path / "builtin", size=SIZE)
     build_scene_from_spec(phantom_files(tmp_path / "files"), tmp_path / "scene")

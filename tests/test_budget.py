@@ -4,11 +4,11 @@ own, the refusal and the warning; and the phantom meshed at sizes that used to f
 import numpy as np
 import pytest
 
-from fenics_elasto import budget
-from fenics_elasto.cli import main
-from fenics_elasto.errors import UserError
-from fenics_elasto.meshing import ORGAN_SIZE, PHANTOM_HALF, PROSTATE_SIZE, _phantom_cells, phantom_organs
-from fenics_elasto.gmsh_models import fresh_gmsh_model
+from fenics_elasto.util import budget
+from fenics_elasto.app.cli import main
+from fenics_elasto.util.errors import UserError
+from fenics_elasto.mesh.builtin import ORGAN_SIZE, PHANTOM_HALF, PROSTATE_SIZE, _phantom_cells, phantom_organs
+from fenics_elasto.mesh.gmsh_models import fresh_gmsh_model
 
 
 def cells_in(msh, dim: int) -> int:
@@ -57,7 +57,7 @@ def test_a_long_mesh_is_warned_about_with_its_time_and_memory(monkeypatch, capfd
 def test_phantom_sizes_where_gmsh_failed_on_the_bones(tmp_path, seed, size):
     """gmsh's surface mesh of the thin bones overlapped itself here (volume left empty,
     exit 0, then "Duplicate mesh entity" in simulate); the bones are now meshed again finer."""
-    from fenics_elasto.scene import load_scene
+    from fenics_elasto.model.scene import load_scene
 
     assert main(["mesh", "prostate-phantom", "--out", str(tmp_path), "--size", str(size), "--seed", str(seed)]) == 0
     scene = load_scene(tmp_path / "problem.toml", command="simulate")

@@ -35,7 +35,7 @@ import pytest
 sys.path.insert(0, str(Path(__file__).parent))
 import catalogue_files as files  # noqa: E402
 from conftest import BIN, run_cli  # noqa: E402
-from fenics_elasto.cli import main  # noqa: E402
+from fenics_elasto.app.cli import main  # noqa: E402
 
 LIMIT_S = 10.0
 TIMES: dict[str, float] = {}
@@ -93,7 +93,7 @@ class Env:
 
 @pytest.fixture(scope="module")
 def env(scenes, tmp_path_factory, request):
-    from fenics_elasto.commands import run_simulate, run_train
+    from fenics_elasto.app.commands import run_simulate, run_train
 
     e = Env(tmp_path_factory.mktemp("catalogue"), scenes)
     e.truth = e.root / "truth"
@@ -666,7 +666,7 @@ def test_scene(env, capfd, row):
 
 def busy(e) -> list:
     """An output folder locked by a live process (a sleeping child)."""
-    from fenics_elasto.outputs import LOCK
+    from fenics_elasto.files.outputs import LOCK
 
     folder = e.out()
     folder.mkdir(parents=True)

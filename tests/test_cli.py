@@ -5,7 +5,7 @@ import json
 import pytest
 
 from conftest import assert_picture, run_cli
-from fenics_elasto.cli import main
+from fenics_elasto.app.cli import main
 
 
 @pytest.mark.slow
@@ -109,7 +109,7 @@ def test_unknown_scene_and_bad_override(tmp_path, capsys):
 
 def test_phantom_organ_detail(tmp_path, scenes):
     """--organ-size refines the bladder and rectum walls (the loaded boundary)."""
-    from fenics_elasto.gmsh_models import read_surfaces
+    from fenics_elasto.mesh.gmsh_models import read_surfaces
 
     assert main(["mesh", "prostate-phantom", "--out", str(tmp_path), "--size", "1.6", "--organ-size", "0.25"]) == 0
     finer = read_surfaces(tmp_path / "phantom.msh")
@@ -122,7 +122,7 @@ def test_phantom_organ_detail(tmp_path, scenes):
 def test_mesh_around_an_atlas(tmp_path, capsys):
     """A patient meshed around the atlas's organs has the atlas's loaded surfaces;
     an atlas for a scene that takes none, or a missing atlas file, exits 2."""
-    from fenics_elasto.atlas import atlas_surfaces
+    from fenics_elasto.mesh.atlas import atlas_surfaces
 
     assert main(["mesh", "prostate-phantom", "--out", str(tmp_path / "atlas"), "--size", "1.6"]) == 0
     atlas = tmp_path / "atlas" / "phantom.msh"

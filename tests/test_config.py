@@ -8,12 +8,11 @@ import math
 
 import pytest
 
-from fenics_elasto import meshing
-from fenics_elasto.config import (
-    PROBLEM, SCENE_SPEC, apply_overrides, check_gdim, parse_override, read_problem, read_scene_spec,
-    toml_text, validate_problem, validate_scene_spec,
-)
-from fenics_elasto.errors import UserError
+from fenics_elasto.mesh import builtin as meshing
+from fenics_elasto.config.problem import PROBLEM, check_gdim, read_problem, validate_problem
+from fenics_elasto.config.scene_spec import SCENE_SPEC, read_scene_spec, validate_scene_spec
+from fenics_elasto.config.toml import apply_overrides, parse_override, toml_text
+from fenics_elasto.util.errors import UserError
 
 DROP = object()  # in a patch: remove this key
 
@@ -322,7 +321,7 @@ def test_normalised_config_validates_to_itself():
     config, _ = problem({"reduction": {"bases": "b.npz"}, "target": {"landmarks": "l.csv", "noise": 0.1}}, command="estimate")
     again, _ = validate_problem(copy.deepcopy(config), command="estimate")
     assert again == config
-    apply_overrides(config, ["materials.letter.nu.initial=0.2"])
+    apply_overrides(config, ["materials.letter.nu.initial=0.2"], PROBLEM)
     assert validate_problem(config)[0]["materials"]["letter"]["nu"]["value"] == 0.2
 
 

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 
 from conftest import BIN, assert_picture, run_cli
-from fenics_elasto.cli import main
-from fenics_elasto.estimate import estimate
-from fenics_elasto.meshing import build_scene
-from fenics_elasto.objective import InverseProblem
-from fenics_elasto.scene import load_scene
+from fenics_elasto.app.cli import main
+from fenics_elasto.inverse.estimator import estimate
+from fenics_elasto.mesh.builtin import build_scene
+from fenics_elasto.inverse.objective import InverseProblem
+from fenics_elasto.model.scene import load_scene
 from targets import fine_simulation, landmarks_for
 
 

@@ -8,11 +8,11 @@ from mpi4py import MPI
 import dolfinx
 from dolfinx import fem
 
-from fenics_elasto.elasticity import ElasticModel
-from fenics_elasto.gmsh_models import GmshModel
-from fenics_elasto.meshing import build_cantilever
-from fenics_elasto.scene import load_scene
-from fenics_elasto.simulate import material_values, prescribed_function, simulate
+from fenics_elasto.model.elasticity import ElasticModel
+from fenics_elasto.mesh.gmsh_models import GmshModel
+from fenics_elasto.mesh.builtin import build_cantilever
+from fenics_elasto.model.scene import load_scene
+from fenics_elasto.model.simulate import material_values, prescribed_function, simulate
 
 E, NU, P = 1000.0, 0.3, 1.0
 L, C = 8.0, 1.0

@@ -11,11 +11,11 @@ import dolfinx.fem.petsc
 from dolfinx import fem
 
 from conftest import run_mpi_script
-import fenics_elasto.elasticity as elasticity
-from fenics_elasto.elasticity import ElasticModel, lame, lame_jacobian, stiffness_quadrature
-from fenics_elasto.errors import UserError
-from fenics_elasto.scene import load_scene, reconfigure
-from fenics_elasto.simulate import material_values, simulate
+import fenics_elasto.model.elasticity as elasticity
+from fenics_elasto.model.elasticity import ElasticModel, lame, lame_jacobian, stiffness_quadrature
+from fenics_elasto.util.errors import UserError
+from fenics_elasto.model.scene import load_scene, reconfigure
+from fenics_elasto.model.simulate import material_values, simulate
 
 
 @pytest.fixture(scope="module")
@@ -146,8 +146,8 @@ def test_curved_surfaces_lie_on_the_organs(scenes, phantom):
     """The phantom's P2 geometry with a P2 field writes 4x4 flat pieces per curved
     facet, all on the true prostate ellipsoid up to the quadratic interpolation
     error; with a P1 field (corners only) the flat facets cut inside by their sag."""
-    from fenics_elasto.io import surface
-    from fenics_elasto.meshing import phantom_organs
+    from fenics_elasto.files.writers import surface
+    from fenics_elasto.mesh.builtin import phantom_organs
 
     prostate = phantom_organs(0)["prostate"]
 

@@ -5,10 +5,10 @@ with central finite differences, for forces, boundary displacements, E and nu, i
 import numpy as np
 import pytest
 
-from fenics_elasto.meshing import build_scene
-from fenics_elasto.objective import InverseProblem
-from fenics_elasto.scene import load_scene
-from fenics_elasto.verification import taylor_test
+from fenics_elasto.mesh.builtin import build_scene
+from fenics_elasto.inverse.objective import InverseProblem
+from fenics_elasto.model.scene import load_scene
+from fenics_elasto.inverse.verification import taylor_test
 from targets import fine_simulation, landmarks_for, letter_case
 
 

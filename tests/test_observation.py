@@ -9,15 +9,15 @@ import numpy as np
 import pytest
 
 from conftest import run_cli, run_mpi_script
-from fenics_elasto.cli import main
-from fenics_elasto.elasticity import ElasticModel
-from fenics_elasto.errors import UserError
-from fenics_elasto.estimate import estimate
-from fenics_elasto.meshing import build_scene
-from fenics_elasto.objective import InverseProblem
-from fenics_elasto.observation import Observation, PointProbe
-from fenics_elasto.scene import load_scene
-from fenics_elasto.simulate import probe
+from fenics_elasto.app.cli import main
+from fenics_elasto.model.elasticity import ElasticModel
+from fenics_elasto.util.errors import UserError
+from fenics_elasto.inverse.estimator import estimate
+from fenics_elasto.mesh.builtin import build_scene
+from fenics_elasto.inverse.objective import InverseProblem
+from fenics_elasto.model.observation import Observation, PointProbe
+from fenics_elasto.model.scene import load_scene
+from fenics_elasto.model.simulate import probe
 from targets import fine_simulation
 
 MPI_LANDMARKS = Path(__file__).parent / "mpi" / "landmarks.py"
@@ -107,7 +107,7 @@ def test_a_landmark_outside_the_body_is_one_line(scenes, tmp_path, capsys):
 def test_full_force_space_on_surfaces_is_refused_before_any_solve(scenes, tmp_path):
     """The phantom's loaded walls are matched: in the full force space every E fits the
     surfaces (measured before: a 15-minute run to an arbitrary number)."""
-    from fenics_elasto.io import write_matched_surfaces
+    from fenics_elasto.files.writers import write_matched_surfaces
 
     scene = load_scene(scenes["prostate-phantom"])
     write_matched_surfaces(tmp_path / "still", scene, ElasticModel(scene).function())  # the undeformed organs
@@ -126,7 +126,7 @@ def test_a_scan_within_the_noise_ends_after_the_scan(tmp_path, capsys, monkeypat
     best scan value looked narrower than the bounds, yet after a whole estimate every
     draw's profile interval was E = 1-1000. Phi* over the start scan already showed it:
     it rises less than the noise's 95 % threshold anywhere."""
-    import fenics_elasto.estimate as estimate_module
+    import fenics_elasto.inverse.estimator as estimate_module
     from independent import noisy_copy
 
     source = build_scene("inclusion", tmp_path / "source")

@@ -20,9 +20,9 @@ from pathlib import Path
 
 import pytest
 
-from fenics_elasto.errors import UserError
-from fenics_elasto.interrupts import Interrupted, deferred_signals, handle_signals
-from fenics_elasto.outputs import LOCK, prepare_file, prepare_folder
+from fenics_elasto.util.errors import UserError
+from fenics_elasto.util.interrupts import Interrupted, deferred_signals, handle_signals
+from fenics_elasto.files.outputs import LOCK, prepare_file, prepare_folder
 
 CHILD = Path(__file__).with_name("outputs_child.py")
 BIN = Path(sys.executable).parent

@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 
 from conftest import run_cli
-from fenics_elasto.errors import UserError
-from fenics_elasto.estimate import estimate
-from fenics_elasto.meshing import build_scene
-from fenics_elasto.objective import InverseProblem
-from fenics_elasto.reduction import Bases, load_bases, pca, train_bases
-from fenics_elasto.scene import load_scene
+from fenics_elasto.util.errors import UserError
+from fenics_elasto.inverse.estimator import estimate
+from fenics_elasto.mesh.builtin import build_scene
+from fenics_elasto.inverse.objective import InverseProblem
+from fenics_elasto.inverse.reduction.bases import Bases, load_bases, pca, train_bases
+from fenics_elasto.model.scene import load_scene
 from targets import fine_simulation, inclusion_ratio_4_target, letter_case
 from test_gradients import taylor_rates
 
@@ -118,8 +118,8 @@ def test_patients_meshed_around_an_atlas_share_its_nodes(tmp_path):
     """A patient meshed around the atlas's bladder and rectum has exactly the atlas
     nodes as loaded nodes; they sit where the organ's own shape change takes them;
     numbering round-trips; a patient meshed on its own is refused."""
-    from fenics_elasto.atlas import atlas_nodes, atlas_order, atlas_surfaces, from_atlas, to_atlas
-    from fenics_elasto.meshing import phantom_organs
+    from fenics_elasto.mesh.atlas import atlas_nodes, atlas_order, atlas_surfaces, from_atlas, to_atlas
+    from fenics_elasto.mesh.builtin import phantom_organs
 
     build_scene("prostate-phantom", tmp_path / "atlas", size=1.6)
     atlas = atlas_surfaces(tmp_path / "atlas" / "phantom.msh")
@@ -157,8 +157,8 @@ def test_held_out_patient_with_bases_from_others(tmp_path, capsys):
     """Bases trained from the command line on patients 1-3 (meshed around patient 0's
     organs) fit a patient they never saw and recover its E through `estimate` with a
     [reduction] table (coarse P2 phantom: the bound is loose, see README)."""
-    from fenics_elasto.cli import main
-    from fenics_elasto.study import simulate_examples, simulate_targets
+    from fenics_elasto.app.cli import main
+    from fenics_elasto.app.study import simulate_examples, simulate_targets
 
     build_scene("prostate-phantom", tmp_path / "atlas", size=1.6)
     atlas = tmp_path / "atlas" / "phantom.msh"
@@ -189,6 +189,6 @@ def test_held_out_patient_with_bases_from_others(tmp_path, capsys):
 
 
 def read_atlas(msh):
-    from fenics_elasto.atlas import atlas_surfaces
+    from fenics_elasto.mesh.atlas import atlas_surfaces
 
     return atlas_surfaces(msh)

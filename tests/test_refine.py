@@ -19,14 +19,14 @@ import dolfinx.geometry
 from dolfinx import fem
 
 from conftest import run_mpi_script
-from fenics_elasto.cli import main
-from fenics_elasto.elasticity import ElasticModel
-from fenics_elasto.errors import UserError
-from fenics_elasto.gmsh_models import GmshModel
-from fenics_elasto.meshing import build_scene
-from fenics_elasto.refine import prolongation, refine_scene, transfer_bases
-from fenics_elasto.scene import load_scene
-from fenics_elasto.simulate import simulate
+from fenics_elasto.app.cli import main
+from fenics_elasto.model.elasticity import ElasticModel
+from fenics_elasto.util.errors import UserError
+from fenics_elasto.mesh.gmsh_models import GmshModel
+from fenics_elasto.mesh.builtin import build_scene
+from fenics_elasto.model.refine import prolongation, refine_scene, transfer_bases
+from fenics_elasto.model.scene import load_scene
+from fenics_elasto.model.simulate import simulate
 from test_forward_analytic import C, E, L, P, cantilever_errors
 
 SIZES = {"letter-a": None, "inclusion": None, "cantilever": 0.5, "prostate-phantom": 1.6}

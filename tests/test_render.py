@@ -6,7 +6,7 @@ import pyvista as pv
 from PIL import Image
 
 from conftest import assert_picture
-from fenics_elasto.render import caption, distance_to, render
+from fenics_elasto.app.render import caption, distance_to, render
 
 
 def moved_sphere(center, radius, shift):

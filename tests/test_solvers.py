@@ -11,11 +11,11 @@ from petsc4py import PETSc
 
 from conftest import run_cli, run_mpi_script
 from targets import letter_case
-from fenics_elasto.elasticity import ElasticModel
-from fenics_elasto.forward import BoundaryForward
-from fenics_elasto.scene import load_scene
-from fenics_elasto.simulate import material_values, simulate
-from fenics_elasto.solvers import DIRECT_LIMIT, SolverError, SolverSettings
+from fenics_elasto.model.elasticity import ElasticModel
+from fenics_elasto.model.forward import BoundaryForward
+from fenics_elasto.model.scene import load_scene
+from fenics_elasto.model.simulate import material_values, simulate
+from fenics_elasto.model.solvers import DIRECT_LIMIT, SolverError, SolverSettings
 
 MPI_SCRIPT = Path(__file__).parent / "mpi" / "solvers.py"
 
@@ -252,7 +252,7 @@ def test_mumps_failure_is_an_error(cantilever, petsc_option):
 def test_factors_too_big_for_the_machine_are_refused_before_factorizing(cantilever, monkeypatch):
     """MUMPS's analysis first: its memory estimate against what the machine has (the
     OOM killer otherwise ends a too-big factorization without a word)."""
-    import fenics_elasto.solvers as solvers
+    import fenics_elasto.model.solvers as solvers
 
     model = ElasticModel(cantilever, SolverSettings(method="direct"))
     _, nu = material_values(cantilever)

@@ -5,11 +5,11 @@ solved in full at every material value while factorizing less."""
 import numpy as np
 import pytest
 
-from fenics_elasto.estimate import Options, estimate
-from fenics_elasto.meshing import build_scene
-from fenics_elasto.objective import InverseProblem
-from fenics_elasto.scene import load_scene
-from fenics_elasto.surrogate import MaterialSurrogate
+from fenics_elasto.inverse.estimator import Options, estimate
+from fenics_elasto.mesh.builtin import build_scene
+from fenics_elasto.inverse.objective import InverseProblem
+from fenics_elasto.model.scene import load_scene
+from fenics_elasto.inverse.surrogate import MaterialSurrogate
 from targets import letter_case
 
 
@@ -141,8 +141,8 @@ def test_inner_spread_is_nil_on_a_clean_target_and_not_on_a_rough_one(tmp_path):
     neighbouring nu as starts found the second minimum only from nu = 0.62, beyond nu's
     bound, and not at all once the surrogate was refined at the answer instead of solved
     there in full.)"""
-    from fenics_elasto.estimate import Estimator
-    from fenics_elasto.surface import read_surface
+    from fenics_elasto.inverse.estimator import Estimator
+    from fenics_elasto.files.readers import read_surface
     from independent import noisy_copy
 
     source, target = letter_case(tmp_path, 0.25, 0.35)

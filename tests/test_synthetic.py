@@ -8,13 +8,13 @@ import numpy as np
 import pytest
 
 from conftest import run_cli
-from fenics_elasto.fields import SmoothFields
-from fenics_elasto.meshing import build_scene
-from fenics_elasto.objective import InverseProblem
-from fenics_elasto.estimate import Estimator, Options, _bias_warnings, estimate, fit_of_bases
-from fenics_elasto.reduction import Bases, missing_wall_motion, reach_warning, train_bases
-from fenics_elasto.scene import load_scene
-from fenics_elasto.synthetic import Generator, affine_basis, pressure_examples
+from fenics_elasto.geometry.fields import SmoothFields
+from fenics_elasto.mesh.builtin import build_scene
+from fenics_elasto.inverse.objective import InverseProblem
+from fenics_elasto.inverse.estimator import Estimator, Options, _bias_warnings, estimate, fit_of_bases
+from fenics_elasto.inverse.reduction.bases import Bases, missing_wall_motion, reach_warning, train_bases
+from fenics_elasto.model.scene import load_scene
+from fenics_elasto.inverse.reduction.synthetic import Generator, affine_basis, pressure_examples
 from targets import inclusion_ratio_4_target
 
 
@@ -91,7 +91,7 @@ def test_a_constant_mimicked_here_but_seen_by_the_scan_runs_with_a_warning(tmp_p
     share is ~0.7), the estimate runs, warns, and finds the ratio; the same with the
     scan's values flat would end (tests/test_observation.py: the top's own forces fit
     it whatever E is)."""
-    import fenics_elasto.posterior as posterior
+    import fenics_elasto.inverse.uncertainty.posterior as posterior
 
     source, problem = inclusion
     bases = train_bases(problem, [], rank=12, generator=Generator(24, seed=1))
@@ -105,7 +105,7 @@ def test_a_constant_mimicked_here_but_seen_by_the_scan_runs_with_a_warning(tmp_p
 
 
 def test_scan_sees_a_rise_not_noise_or_round_off():
-    from fenics_elasto.posterior import CHI2_95, scan_sees
+    from fenics_elasto.inverse.uncertainty.posterior import CHI2_95, scan_sees
 
     noise, still = 0.01, 10.0
     threshold = 0.5 * CHI2_95 * noise**2
@@ -119,7 +119,7 @@ def test_wall_loads_see_only_the_nodes_on_the_loaded_walls(inclusion):
     at a whole mesh's nodes took 19 GB for 400 examples): the assembled wall loads must
     not see any other node. A field that is 1 everywhere off the walls loads nothing;
     the same field on the walls does."""
-    from fenics_elasto.synthetic import WallLoads, _group_of
+    from fenics_elasto.inverse.reduction.synthetic import WallLoads, _group_of
 
     _, problem = inclusion
     loads = WallLoads(problem.forward)
@@ -135,7 +135,7 @@ def test_wall_loads_see_only_the_nodes_on_the_loaded_walls(inclusion):
 def test_smooth_fields_one_at_a_time_are_the_fields_drawn_at_once():
     """SmoothFields evaluates its fields one by one (bounded memory); the values are the
     random-feature sum written out for all of them together."""
-    from fenics_elasto.fields import FEATURES
+    from fenics_elasto.geometry.fields import FEATURES
 
     fields = SmoothFields(5, 3, 3, 1.5, np.random.default_rng(4))
     points = np.random.default_rng(1).uniform(-3, 3, (200, 3))

@@ -11,10 +11,10 @@ import pytest
 
 import dolfinx
 from conftest import run_cli
-from fenics_elasto.io import surface
-from fenics_elasto.meshing import phantom_organs
-from fenics_elasto.scene import load_scene
-from fenics_elasto.tessellate import MAX_TRIANGLES, PIECES, default_pieces, orient_outward
+from fenics_elasto.files.writers import surface
+from fenics_elasto.mesh.builtin import phantom_organs
+from fenics_elasto.model.scene import load_scene
+from fenics_elasto.geometry.tessellate import MAX_TRIANGLES, PIECES, default_pieces, orient_outward
 
 SCALE = 0.1  # the affine field u = SCALE (x - c): volumes grow by (1 + SCALE)^3
 

@@ -5,8 +5,8 @@ import sys
 import numpy as np
 
 import fenics_elasto  # noqa: F401
-from fenics_elasto.scene import load_scene
-from fenics_elasto.simulate import simulate
+from fenics_elasto.model.scene import load_scene
+from fenics_elasto.model.simulate import simulate
 
 problem, out = sys.argv[1], sys.argv[2]
 scene = load_scene(problem)

@@ -7,9 +7,9 @@ import numpy as np
 
 import fenics_elasto  # noqa: F401  (before mpi4py, dolfinx and petsc4py)
 from mpi4py import MPI
-from fenics_elasto.estimate import estimate
-from fenics_elasto.objective import InverseProblem
-from fenics_elasto.scene import load_scene
+from fenics_elasto.inverse.estimator import estimate
+from fenics_elasto.inverse.objective import InverseProblem
+from fenics_elasto.model.scene import load_scene
 
 problem_path, target, landmarks, out = sys.argv[1:5]
 scene = load_scene(problem_path, [f"target={{surface='{target}', landmarks='{landmarks}'}}"])

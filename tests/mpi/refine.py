@@ -4,9 +4,9 @@ import sys
 
 import numpy as np
 
-from fenics_elasto.elasticity import ElasticModel
-from fenics_elasto.refine import refine_scene, transfer_bases
-from fenics_elasto.scene import load_scene
+from fenics_elasto.model.elasticity import ElasticModel
+from fenics_elasto.model.refine import refine_scene, transfer_bases
+from fenics_elasto.model.scene import load_scene
 
 problem, out, bases = sys.argv[1:4]
 coarse = load_scene(problem)

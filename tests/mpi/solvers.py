@@ -9,10 +9,10 @@ import sys
 import numpy as np
 
 import fenics_elasto  # noqa: F401
-from fenics_elasto.elasticity import ElasticModel
-from fenics_elasto.forward import BoundaryForward
-from fenics_elasto.scene import load_scene
-from fenics_elasto.solvers import SolverSettings
+from fenics_elasto.model.elasticity import ElasticModel
+from fenics_elasto.model.forward import BoundaryForward
+from fenics_elasto.model.scene import load_scene
+from fenics_elasto.model.solvers import SolverSettings
 
 problem, method, out = sys.argv[1], sys.argv[2], sys.argv[3]
 scene = load_scene(problem, ["degree=1"])

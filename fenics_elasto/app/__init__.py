@@ -1,0 +1,1 @@
+"""The application: the command line, what each command does, pictures."""

@@ -1,0 +1,1 @@
+"""Every input's schema: problem.toml, scene specs, ``--set`` overrides."""

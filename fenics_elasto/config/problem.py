@@ -1,0 +1,178 @@
+"""The schema of problem.toml, and reading one: what each command needs and ignores.
+
+Checks that need the mesh (does a named group exist, does a vector have the mesh's
+dimension) belong to the scene loader; ``check_gdim`` does the second once the mesh
+is known.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from fenics_elasto.config.schema import (REQUIRED, Boolean, Choice, Elastic, Integer, Key, Matrix, Named, Names,
+                                         Number, String, Table, Vector, Where, show)
+from fenics_elasto.config.toml import apply_overrides, read_toml
+
+COMMANDS = ("simulate", "estimate", "train")
+SIMULATE_ONLY = ("displacement", "load", "pressure")  # [boundary] tables only `simulate` uses
+
+def _check_boundary(boundary: dict, where: Where) -> dict:
+    both = [g for g in boundary["fixed"] if g in boundary["loaded"]]
+    if both:
+        where.fail(f"group {show(both[0])} is both fixed and loaded; a facet is either clamped or loaded")
+    _check_sizes(boundary, None, where)
+    return boundary
+
+
+def check_gdim(config: dict, gdim: int, source: str = "problem.toml", overridden: dict | None = None) -> None:
+    """Once the mesh is read: every ``[boundary.displacement]`` / ``[boundary.load]``
+    vector and matrix has the mesh's dimension ``gdim``."""
+    _check_sizes(config["boundary"], gdim, Where(str(source), (), overridden or {}).at("boundary"))
+
+
+def _check_sizes(boundary: dict, gdim: int | None, where: Where) -> None:
+    """Every vector and matrix of ``[boundary.displacement]`` / ``[boundary.load]`` has
+    one size: ``gdim`` if given, else the first one's."""
+    sized = [(where.at("load").at(g), len(v)) for g, v in boundary["load"].items()]
+    for group, spec in boundary["displacement"].items():
+        at = where.at("displacement").at(group)
+        sized += [(at.at(k), len(spec[k])) for k in ("value", "gradient", "center") if spec[k] is not None]
+    for at, size in sized:
+        reference = gdim or sized[0][1]
+        if size != reference:
+            why = f"the mesh is {gdim}D" if gdim else f"as {sized[0][0].path()}"
+            at.fail(f"expected size {reference} ({why}), got {size}")
+
+
+def _default_E_bounds(value: float):
+    return value / 20, value * 20
+
+
+def _default_nu_bounds(value: float):
+    return 0.0, 0.499
+
+
+MATERIAL = Table({
+    "E": Key(Elastic(Number(gt=0, noun="a Young's modulus"), _default_E_bounds), REQUIRED),
+    "nu": Key(Elastic(Number(gt=-1, lt=0.5, noun="a Poisson's ratio"), _default_nu_bounds), REQUIRED),
+})
+
+RIPPLE = Table({  # a smooth random displacement field (fields.py): amplitude x a unit-variance field
+    "amplitude": Key(Number(ge=0), REQUIRED), "length": Key(Number(gt=0), REQUIRED), "seed": Key(Integer(ge=0), 0),
+})
+
+DISPLACEMENT = Table({  # u(x) = value + (gradient + scale I)(x - center) [+ ripple]; scene.py fills zeros
+    "value": Key(Vector()), "scale": Key(Number(), 0.0), "gradient": Key(Matrix()), "center": Key(Vector()),
+    "ripple": Key(RIPPLE),
+})
+
+BOUNDARY = Table({
+    "fixed": Key(Names(), []),
+    "loaded": Key(Names(), []),
+    "matched": Key(Names(), []),
+    "match_nodes": Key(Choice("auto", "all", "vertices"), "auto"),
+    "displacement": Key(Named(DISPLACEMENT, "GROUP = {value, scale, gradient, center}"), {}),
+    "load": Key(Named(Vector(), "GROUP = total force vector"), {}),
+    "pressure": Key(Named(Number(), "GROUP = pressure (pushes the wall into the body)"), {}),
+}, after=_check_boundary)
+
+TARGET = Table({
+    "surface": Key(String("a surface file")),
+    "surfaces": Key(Named(String("a surface file"), "GROUP = surface file", minimum=1)),
+    "landmarks": Key(String("a landmarks file")),
+    "landmark_weight": Key(Number(gt=0)),
+    "noise": Key(Number(gt=0)),
+    "smooth": Key(Choice("auto", "off"), "auto"),
+}, exclusive=[("surface", "surfaces")], one_of=("surface", "surfaces", "landmarks"),
+   expected="a table {surface or surfaces, landmarks, landmark_weight, noise, smooth}")
+
+OPTIMIZER = Table({
+    "inner": Key(Choice("auto", "gauss-newton", "lbfgs", "lbfgs-forces"), "auto"),
+    "inner_maxiter": Key(Integer(ge=1), 400),
+    "outer_maxiter": Key(Integer(ge=1), 40),
+    "outer_xtol": Key(Number(gt=0), 1e-3),
+    "scan": Key(Integer(ge=1), 5),
+    "inner_tol": Key(Number(gt=0, lt=1), 1e-6),
+    "full_gn_limit": Key(Integer(ge=0), 1500),
+    "anchor": Key(Number(ge=0), 1e-4),
+    "surrogate": Key(Boolean(), True),
+    "allow_undetermined": Key(Boolean(), False),
+})
+
+PROBLEM = Table({
+    "mesh": Key(String("a mesh file"), REQUIRED),
+    "plane": Key(Choice("strain", "stress"), "strain"),
+    "degree": Key(Choice(1, 2), 2),
+    "units": Key(String()),
+    "materials": Key(Named(MATERIAL, "[materials.NAME] tables", minimum=1), REQUIRED),
+    "boundary": Key(BOUNDARY, {}),
+    "target": Key(TARGET),
+    "optimizer": Key(OPTIMIZER, {}),
+    "reduction": Key(Table({"bases": Key(String("a bases file"), REQUIRED), "rank": Key(Integer(ge=1))})),
+    "solver": Key(Table({
+        "method": Key(Choice("auto", "direct", "iterative"), "auto"),
+        "rtol": Key(Number(gt=0, lt=1), 1e-8),  # every solve: ||b - K x|| <= rtol ||b||
+        "factor": Key(Choice("lu", "cholesky"), "lu"),  # direct only
+        "blr": Key(Number(ge=0, le=1e-2, noun="a block low-rank tolerance (0: off)"), 0.0),  # direct only
+    }), {}),
+})
+
+# What each command needs in [boundary], and why.
+NEEDED_GROUPS = {
+    "estimate": {"fixed": "a clamped group (else the body moves freely)",
+                 "loaded": "a group carrying the unknown forces",
+                 "matched": "a group compared with the target"},
+    "train": {"fixed": "a clamped group (else the body moves freely)",
+              "loaded": "a group carrying the unknown forces"},
+}
+
+
+def _command_checks(config: dict, command: str, where: Where) -> list[str]:
+    """What ``command`` needs and ignores; the warnings for what it ignores."""
+    boundary, at = config["boundary"], where.at("boundary")
+    if command == "simulate":
+        if not (boundary["load"] or boundary["displacement"] or boundary["pressure"]):
+            where.fail("nothing to simulate: add [boundary.load], [boundary.pressure] or [boundary.displacement]")
+        if not (boundary["fixed"] or boundary["displacement"]):
+            at.at("fixed").fail("clamp at least one group (fixed or [boundary.displacement]), got []")
+        return []
+    warnings = []
+    for key in SIMULATE_ONLY:
+        if boundary[key]:
+            warnings.append(f"{where.source}: boundary.{key} is used by simulate only; {command} ignores it")
+            boundary[key] = {}
+    for key, what in NEEDED_GROUPS[command].items():
+        if not boundary[key]:
+            at.at(key).fail(f"{command} needs at least one group: {what}; got []")
+    if command == "estimate":
+        if config["target"] is None:
+            where.at("target").fail("missing; estimate needs surface, surfaces or landmarks", table=True)
+        if config["reduction"] is not None and config["optimizer"]["inner"] not in ("auto", "gauss-newton"):
+            where.at("optimizer").at("inner").fail(
+                f'reduced bases need "gauss-newton" (or "auto"), got {show(config["optimizer"]["inner"])}')
+    return warnings
+
+
+def validate_problem(raw: dict, source: str = "problem.toml", command: str | None = "estimate",
+                     gdim: int | None = None, overridden: dict | None = None) -> tuple[dict, list[str]]:
+    """Check a problem's raw TOML dict for ``command``: (normalised config, warnings).
+
+    ``command`` None checks types and ranges only (a scene loaded for any use, from
+    Python); ``overridden``: what ``apply_overrides`` returned, to blame bad values on
+    their --set.
+    """
+    if command is not None and command not in COMMANDS:
+        raise ValueError(f"command must be one of {COMMANDS}, got {command!r}")
+    where = Where(str(source), (), overridden or {})
+    config = PROBLEM.check(raw, where)
+    if gdim is not None:
+        _check_sizes(config["boundary"], gdim, where.at("boundary"))
+    return config, [] if command is None else _command_checks(config, command, where)
+
+
+def read_problem(path, overrides=(), command: str | None = "estimate",
+                 gdim: int | None = None) -> tuple[dict, list[str]]:
+    """Read, override and check ``problem.toml``: (normalised config, warnings)."""
+    raw = read_toml(Path(path), "problem file")
+    overridden = apply_overrides(raw, overrides, PROBLEM, str(path))
+    return validate_problem(raw, str(path), command, gdim, overridden)

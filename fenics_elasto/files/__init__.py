@@ -1,0 +1,1 @@
+"""Files in and out: readers of users' surfaces and landmarks, writers of results, result folders written safely."""

@@ -1,0 +1,1 @@
+"""The inverse problem: misfit, adjoint gradients, inner and outer optimisation, reduced bases, uncertainty."""

@@ -1,0 +1,243 @@
+"""The reduced-basis response in the materials: J(theta) for every theta from a few solves.
+
+With reduced force bases the matched displacement is J(theta) q, and J(theta) costs a
+factorization of K(theta) -- the dominant cost of an estimate. But the mode fields X(theta)
+(one per boundary mode) vary smoothly with the materials, and K(theta) = sum_j c_j(theta) M_j
+is affine in the Lame coefficients. So (the reduced-basis method for parametrised PDEs):
+
+    X(theta) ~ G + V a(theta),   (V^T K(theta) V) a = -V^T K(theta) G,
+
+with G the boundary modes (W on the loaded DOFs) and V an orthonormal basis of the interior
+parts X(theta_i) - G of the solves done so far ("snapshots"). All products V^T M_j V and
+V^T M_j G are kept, so J(theta) and dJ/dtheta are small dense algebra, exact at every
+snapshot (Galerkin reproduces a solution that lies in the space). The residual
+K(theta)(G + V a) on the free DOFs says how far from exact it is elsewhere.
+
+Only the first snapshot needs a factorization: ``refine`` makes the surrogate exact at
+any nearby theta on that factorization alone (docs/method.md §7). ``affine_pieces`` sums
+the terms whose coefficients move together into pieces M_g, so fewer products are kept.
+Memory: V and M_g V, (1 + pieces) x DOFs x (size of V) numbers.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+from mpi4py import MPI
+
+from fenics_elasto.model.elasticity import combine
+from fenics_elasto.inverse.objective import InverseProblem
+
+
+def affine_pieces(forward, params) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """K(theta) = sum_j c_j(theta) M_j with fewer matrices: terms whose coefficients stay
+    in proportion for every theta -- all those of the materials not estimated, and the
+    two of a material whose E alone is estimated (c = E x constant) -- are summed into one
+    piece M_g = sum_j w_j M_j, with w = c(theta0), and coefficient s_g = c_lead / w_lead.
+    The phantom with prostate E estimated: 2 pieces for 4 terms, so every product with
+    the surrogate's space costs half. Proportion is checked on (c, dc/dtheta) at the
+    initial values and at a second theta, halfway to the farther bound. Returns (lead
+    term, w_lead, weights) per piece; a term that is zero at every theta is left out."""
+    s0 = params.to_s(params.initial)
+    low, high = np.array(params.s_bounds()).T
+    thetas = [params.initial, params.to_theta(np.where(high - s0 > s0 - low, 0.5 * (s0 + high), 0.5 * (low + s0)))]
+    c0 = forward.coefficients(params.initial)[0]
+    vectors = np.vstack([np.vstack(forward.coefficients(theta)) for theta in thetas])  # (rows, terms)
+    norms = np.linalg.norm(vectors, axis=0)
+    groups: list[list[int]] = []
+    for j in np.flatnonzero(norms > 0):
+        unit = vectors[:, j] / norms[j]
+        for group in groups:
+            if np.allclose(unit, vectors[:, group[0]] / norms[group[0]], rtol=0, atol=1e-10):
+                group.append(j)
+                break
+        else:
+            groups.append([j])
+    weights = np.zeros((len(groups), len(c0)))
+    lead = np.array([max(group, key=lambda j: abs(c0[j])) for group in groups])
+    for g, group in enumerate(groups):
+        weights[g, group] = c0[group] if len(group) > 1 else 1.0
+    scale = np.array([weights[g, j] for g, j in enumerate(lead)])
+    return lead, scale, weights
+
+
+# refine: the relative equation residual that stands in for a solve. The answer's E comes
+# from the surrogate's optimum either way; at 1e-6 instead of 1e-8 sigma moved by 3e-8
+# (relative) on the phantom and 2 of 5-8 block steps were saved.
+REFINE_TOL = 1e-6
+# ... and for the modes' derivative along the optimum's controls (dJ/dtheta q): it enters
+# the outer gradient and the posterior's dy only, where a relative error e moves the
+# optimum by ~e sqrt(n_matched) of sigma (3e-3 at 1e-4) and sigma by e.
+DERIVATIVE_TOL = 1e-4
+REFINE_MAXITER = 20
+
+
+class MaterialSurrogate:
+    """J(theta), dJ/dtheta and the equation residual from the snapshots added so far."""
+
+    def __init__(self, problem: InverseProblem, basis: np.ndarray):
+        self.problem = problem
+        self.comm = problem.scene.comm
+        self.forward = problem.forward
+        self.lead, self.scale, weights = affine_pieces(problem.forward, problem.params)
+        terms = problem.model.terms
+        self.terms = [terms[j] if np.count_nonzero(w) == 1 else combine(w, terms) for j, w in zip(self.lead, weights)]
+        self._own = [M for M, w in zip(self.terms, weights) if np.count_nonzero(w) > 1]  # the sums made here
+        lift = self.forward.lift(basis)
+        self.G = lift.getDenseArray().copy()
+        self.MG = [problem.model.multiply(M, self.G) for M in self.terms]
+        lift.destroy()
+        self.free = np.ones(len(self.G), bool)
+        self.free[self.forward.clamped_boundary] = False
+        self.matched_G = problem.observation.rows(self.G)
+        r = self.G.shape[1]
+        self.V = np.zeros((len(self.G), 0))
+        self.MV = [np.zeros((len(self.G), 0)) for _ in self.terms]
+        self.VMV = [np.zeros((0, 0)) for _ in self.terms]
+        self.VMG = [np.zeros((0, r)) for _ in self.terms]
+        self.matched_V = problem.observation.rows(self.V)
+        self.snapshots = []  # theta of every snapshot added
+
+    def destroy(self) -> None:
+        for M in self._own:
+            M.destroy()
+
+    def _coefficients(self, theta) -> tuple[np.ndarray, np.ndarray]:
+        """(s, ds/dtheta): K(theta) = sum_g s_g M_g over the pieces (``affine_pieces``)."""
+        c, dc = self.forward.coefficients(theta)
+        return c[self.lead] / self.scale, dc[:, self.lead] / self.scale
+
+    # --- distributed linear algebra on owned rows
+
+    def _dot(self, X, Y) -> np.ndarray:
+        return self.comm.allreduce(X.T @ Y, op=MPI.SUM)
+
+    # --- building the space
+
+    @property
+    def size(self) -> int:
+        return self.V.shape[1]
+
+    def add(self, theta, X: np.ndarray, sensitivities=()) -> int:
+        """Add the mode fields X (owned rows, r) solved at theta, and their derivatives in
+        the materials (forward.response_sensitivities: fields that vanish on the
+        boundary); returns the directions kept."""
+        kept = self._extend(np.hstack([X - self.G, *sensitivities]))
+        self.snapshots.append(np.array(theta, float))
+        return kept
+
+    def refine(self, theta, factors, q=None, tol: float = REFINE_TOL, maxiter: int = REFINE_MAXITER,
+               budget: float = np.inf) -> int | None:
+        """Make J(theta) (and with controls ``q``, dJ/dtheta q) exact to ``tol``
+        (``residuals``) without factorizing K(theta): add the equations' residuals at
+        theta, preconditioned by the ``factors`` of K at a nearby material value
+        (solvers.SolverCache.closest), to the space until they are that small. Galerkin
+        on the space so grown is a block Krylov method preconditioned by those factors:
+        the error falls at least like CG's, by (sqrt(k) - 1) / (sqrt(k) + 1) per step for
+        a spread k of the coefficients (0.13 at k = 1.7, the phantom's start E 30 to its
+        answer 51.5). Returns the steps (one block back-solve each), None if ``maxiter``
+        of them did not reach ``tol``, or once the steps still needed at the rate seen
+        would take longer than ``budget`` seconds (a factorization's: then it is cheaper)."""
+        start, last = time.perf_counter(), None
+        for step in range(maxiter + 1):
+            R, relative = self.residuals(theta, q)
+            worst = float(np.max(relative)) / tol
+            if worst <= 1:
+                return step
+            if step == maxiter or (last is not None and self._over_budget(start, step, worst / last, worst, budget)):
+                return None
+            last = worst
+            R = np.hstack([block for block, size in zip(R, relative) if size > tol])
+            B = self.problem.model.dense(R.shape[1])
+            B.getDenseArray()[:] = R
+            Z = self.problem.model.dense(R.shape[1])
+            factors.apply_factors(B, Z)
+            self._extend(Z.getDenseArray().copy())
+            B.destroy()
+            Z.destroy()
+        return None
+
+    def _over_budget(self, start: float, steps: int, rate: float, worst: float, budget: float) -> bool:
+        """Whether the steps still needed to bring the residual down by ``worst`` at
+        ``rate`` per step, each as long as the ``steps`` taken since ``start``, would
+        take longer than ``budget`` seconds (what is spent is spent either way; the
+        slowest rank's clock, so that all ranks decide alike)."""
+        spent = self.comm.allreduce(time.perf_counter() - start, op=MPI.MAX)
+        needed = np.inf if rate >= 1 else np.log(worst) / -np.log(rate)
+        return spent / steps * needed > self.comm.allreduce(budget, op=MPI.MAX)
+
+    def _extend(self, Y: np.ndarray) -> int:
+        """Add the directions of Y (owned rows) that V does not hold yet; zero on the
+        clamped DOFs. Returns how many were kept."""
+        Y[~self.free] = 0.0
+        scale = np.sqrt(max(np.max(np.diag(self._dot(Y, Y))), 1e-300))
+        for _ in range(2):  # Gram-Schmidt against V, twice for round-off
+            Y -= self.V @ self._dot(self.V, Y)
+        s2, U = np.linalg.eigh(self._dot(Y, Y))
+        keep = s2 > (1e-10 * scale) ** 2
+        Q = Y @ (U[:, keep] / np.sqrt(s2[keep]))
+        MQ = [self.problem.model.multiply(M, Q) for M in self.terms]
+        for j in range(len(self.terms)):
+            cross = self._dot(self.V, MQ[j])
+            self.VMV[j] = np.block([[self.VMV[j], cross], [cross.T, self._dot(Q, MQ[j])]])
+            self.VMG[j] = np.vstack([self.VMG[j], self._dot(Q, self.MG[j])])
+            self.MV[j] = np.hstack([self.MV[j], MQ[j]])
+        self.V = np.hstack([self.V, Q])
+        self.matched_V = np.concatenate([self.matched_V, self.problem.observation.rows(Q)], axis=2)
+        return int(keep.sum())
+
+    # --- evaluating
+
+    def coefficients(self, theta) -> np.ndarray:
+        """a (size, r): the reduced coordinates of the mode fields at theta."""
+        return self._solve(self._coefficients(theta)[0])[1]
+
+    def _solve(self, c):
+        K = combine(c, self.VMV)
+        return K, -np.linalg.solve(K, combine(c, self.VMG))
+
+    def _reduced(self, theta):
+        """c, dc/dtheta, a(theta) and da/dtheta_k (Galerkin: (V^T K V) da_k = -V^T D_k (G + V a))."""
+        c, dc = self._coefficients(theta)
+        K, a = self._solve(c)
+        da = [-np.linalg.solve(K, combine(dck, self.VMV) @ a + combine(dck, self.VMG)) for dck in dc]
+        return c, dc, a, da
+
+    def response(self, theta) -> tuple[np.ndarray, np.ndarray]:
+        """J (n_matched, gdim, r) and dJ/dtheta (n_estimated, n_matched, gdim, r)."""
+        _, _, a, da = self._reduced(theta)
+        return self.matched_G + self.matched_V @ a, np.array([self.matched_V @ d for d in da])
+
+    def fields(self, theta) -> np.ndarray:
+        """G + V a(theta): the surrogate's mode fields (owned rows, r)."""
+        return self.G + self.V @ self.coefficients(theta)
+
+    def residual(self, theta) -> float:
+        """||K(theta)(G + V a)|| on the free DOFs relative to ||K(theta) G|| there: 0 is exact."""
+        return float(self.residuals(theta)[1][0])
+
+    def residuals(self, theta, q=None) -> tuple[list[np.ndarray], np.ndarray]:
+        """The equations' residuals on the free DOFs (owned rows, zero on the clamped
+        DOFs): K (G + V a) of the mode fields (r columns), and with controls ``q`` that
+        of their derivatives along q, K V da_k q + D_k (G + V a) q (one column per
+        estimated constant); and each one's norm relative to its load (K G; D_k (G + V a) q):
+        0 is exact."""
+        c, dc, a, da = self._reduced(theta)
+
+        def on(kept, coefficients, x):  # sum_g coefficients_g (M_g Y) x for the kept M_g Y (Y: G or V)
+            return sum(cg * (MY @ x) for cg, MY in zip(coefficients, kept) if cg != 0)
+
+        pairs = [(combine(c, self.MG), on(self.MV, c, a))]
+        if q is not None:  # along q: matrix-vector products only
+            Q, aQ = q[:, None], a @ q[:, None]
+            pairs += [(on(self.MG, dck, Q) + on(self.MV, dck, aQ), on(self.MV, c, d @ Q)) for dck, d in zip(dc, da)]
+        blocks, relative = [], []
+        for load, applied in pairs:
+            load[~self.free] = 0.0
+            R = load + applied
+            R[~self.free] = 0.0
+            blocks.append(R)
+            relative.append(np.sqrt(np.sum(self._dot(R, R).diagonal())
+                                    / max(np.sum(self._dot(load, load).diagonal()), 1e-300)))
+        return blocks, np.array(relative)

@@ -1,0 +1,1 @@
+"""How sure: the posterior of the estimated constants, profile-likelihood intervals, identifiability."""

@@ -1,0 +1,334 @@
+"""Surface files as segmentations give them -> closed, outward-oriented shells.
+
+Organ surfaces exported from a CT/MR segmentation carry defects: stray specks (a few
+triangles apart from the organ), duplicated points (STL stores every triangle's
+corners anew), duplicated or collapsed triangles, inconsistent or inward normals,
+small holes. ``closed_shells`` repairs what is safe -- each repair is one printed
+line -- in this order:
+
+1. merge points closer than 1e-7 of the surface's size; drop triangles that collapse
+   (a repeated corner) and duplicated triangles;
+2. drop components (edge-connected) whose area is under 1 % of the largest one's;
+3. orient every component consistently (libigl's BFS), fill each hole whose radius is
+   at most 5 % of the surface's size with a fan from the hole's centre, and turn each
+   component's normals outward (positive enclosed volume);
+and refuses, with one line naming the file and the defect, what it cannot make a
+closed surface: an edge shared by more than two triangles, a larger opening, a
+non-orientable piece, a surface that passes through itself (found from the winding
+number just inside and outside of every triangle: 1 and 0 on a simple closed surface).
+
+Libraries: pyvista/VTK (BSD-3) to read any surface format and to cut the outer
+surface along patch planes, libigl (MPL-2) for duplicates, orientation, winding
+numbers and distances, SciPy (BSD-3) for components.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import cached_property
+from pathlib import Path
+
+import numpy as np
+
+from fenics_elasto.util.errors import UserError, require
+from fenics_elasto.files.readers import quiet_vtk
+from fenics_elasto.geometry.meshes import row_keys
+from fenics_elasto.util.logs import log
+
+MERGE_TOLERANCE = 1e-7  # of the bounding-box diagonal
+SPECK_FRACTION = 0.01  # components under 1 % of the largest one's area are specks
+HOLE_FRACTION = 0.05  # holes up to 5 % of the bounding-box diagonal (radius) are filled
+
+
+@dataclass
+class Shell:
+    """One closed, outward-oriented component of a surface (triangles index points)."""
+
+    role: str  # "body", "region" or "cavity"
+    name: str  # the region's or cavity's name; the body's material
+    label: str  # for messages: 'regions.prostate (prostate.stl)'
+    points: np.ndarray
+    triangles: np.ndarray
+    features: np.ndarray = field(default_factory=lambda: np.empty((0, 2), np.int64))  # edges kept as curves
+    patches: np.ndarray | None = None  # per triangle: bit p set if on patch p's side
+
+    @cached_property
+    def volume(self) -> float:
+        return enclosed_volume(self.points, self.triangles)
+
+    @cached_property
+    def bounds(self) -> np.ndarray:
+        return np.array([self.points.min(axis=0), self.points.max(axis=0)])
+
+
+# --------------------------------------------------------------------------- reading
+
+
+def read_triangles(path: Path, label: str) -> tuple[np.ndarray, np.ndarray]:
+    """Points and triangles of any surface file pyvista/meshio reads (polygons are
+    triangulated; a volume mesh gives its boundary)."""
+    import pyvista as pv
+
+    require(path.is_file(), f"{label}: no such file {path}")
+    require(path.stat().st_size > 0, f"{label}: the file is empty")
+    messages = []
+    try:
+        with quiet_vtk(raise_errors=True) as messages:
+            mesh = pv.read(path)
+            if isinstance(mesh, pv.MultiBlock):
+                mesh = mesh.combine()
+            if not isinstance(mesh, pv.PolyData):
+                mesh = mesh.extract_surface(algorithm="dataset_surface")
+            lines = mesh.n_lines
+            mesh = mesh.triangulate()
+    except Exception as err:  # readers raise anything from ValueError to VTK execution errors
+        cause = messages[0] if messages else str(err).splitlines()[0] if str(err) else type(err).__name__
+        raise UserError(f"{label}: cannot read it as a surface ({cause})") from None
+    require(mesh.n_points > 0, f"{label}: no points ({messages[0] if messages else 'empty or unreadable file'})")
+    require(mesh.n_cells > lines, f"{label}: only lines, no triangles (a 2D curve?); a surface needs triangles")
+    points = np.asarray(mesh.points, dtype=float)
+    require(np.isfinite(points).all(), f"{label}: NaN or infinite coordinates")
+    triangles = mesh.faces.reshape(-1, 4)[:, 1:].astype(np.int64)
+    return points, triangles
+
+
+# --------------------------------------------------------------------------- topology
+
+
+def enclosed_volume(points: np.ndarray, triangles: np.ndarray) -> float:
+    """Signed volume enclosed by a closed triangulation (> 0 for outward normals)."""
+    p = points - points.mean(axis=0)
+    a, b, c = p[triangles[:, 0]], p[triangles[:, 1]], p[triangles[:, 2]]
+    return float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0)
+
+
+def triangle_areas(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    a, b, c = (points[triangles[:, k]] for k in range(3))
+    return 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+
+
+def directed_edges(triangles: np.ndarray) -> np.ndarray:
+    """(3 m, 2) the edges of every triangle, in its orientation."""
+    return triangles[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
+
+
+def edge_use(triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Undirected edges (sorted pairs), the edge of each directed edge, and how many
+    triangles use each edge."""
+    undirected = np.sort(directed_edges(triangles), axis=1)
+    _, first, which, count = np.unique(row_keys(undirected), return_index=True, return_inverse=True, return_counts=True)
+    return undirected[first], which.ravel(), count
+
+
+def _components(triangles: np.ndarray) -> np.ndarray:
+    """Component id of every triangle (connected through shared edges)."""
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+
+    _, which, count = edge_use(triangles)
+    owner = np.repeat(np.arange(len(triangles)), 3)
+    shared = sp.coo_matrix((np.ones(len(which)), (owner, which))).tocsr()
+    graph = shared @ shared.T  # triangles sharing an edge
+    return connected_components(graph, directed=False)[1]
+
+
+# --------------------------------------------------------------------------- repairs
+
+
+def _merge_points(points, triangles, label):
+    import igl
+
+    size = np.linalg.norm(np.ptp(points, axis=0))
+    used = np.unique(triangles)
+    merged, _, index = igl.remove_duplicate_vertices(points[used], MERGE_TOLERANCE * size)
+    remap = np.zeros(len(points), np.int64)
+    remap[used] = index
+    duplicates = len(used) - len(merged)
+    if duplicates:
+        log.info(f"{label}: merged {duplicates} duplicated points")
+    return merged, remap[triangles]
+
+
+def _drop_bad_triangles(triangles, label):
+    collapsed = (triangles[:, 0] == triangles[:, 1]) | (triangles[:, 1] == triangles[:, 2]) | (triangles[:, 2] == triangles[:, 0])
+    triangles = triangles[~collapsed]
+    _, first = np.unique(row_keys(np.sort(triangles, axis=1)), return_index=True)
+    duplicated = len(triangles) - len(first)
+    if collapsed.any():
+        log.info(f"{label}: dropped {collapsed.sum()} collapsed triangles (a repeated corner)")
+    if duplicated:
+        log.info(f"{label}: dropped {duplicated} duplicated triangles")
+    return triangles[np.sort(first)]
+
+
+def _drop_specks(points, triangles, label):
+    component = _components(triangles)
+    area = np.bincount(component, weights=triangle_areas(points, triangles))
+    specks = area < SPECK_FRACTION * area.max()
+    if specks.any():
+        sizes = np.bincount(component)[specks]
+        count = f"{sizes.min()} triangles each" if sizes.min() == sizes.max() else f"{sizes.min()}-{sizes.max()} triangles"
+        log.info(f"{label}: dropped {specks.sum()} stray piece(s) ({count}, {100 * area[specks].sum() / area.sum():.2g} % "
+            f"of the area; kept pieces of at least {100 * SPECK_FRACTION:g} % of the largest's)")
+    return triangles[~specks[component]]
+
+
+def _orient_consistently(triangles, label):
+    import igl
+
+    oriented, component = igl.bfs_orient(triangles)
+    # each component follows its first triangle; count the ones that disagreed with the majority
+    flipped = np.bincount(component, weights=_reversed(triangles, oriented))
+    disagreeing = int(np.minimum(flipped, np.bincount(component) - flipped).sum())
+    if disagreeing:
+        log.info(f"{label}: re-oriented {disagreeing} triangles to agree with their neighbours")
+    _, count = np.unique(row_keys(directed_edges(oriented)), return_counts=True)
+    require((count == 1).all(), f"{label}: not orientable (a Moebius-like piece); cannot make it a closed surface")
+    return oriented
+
+
+def _reversed(before: np.ndarray, after: np.ndarray) -> np.ndarray:
+    """Per row: does ``after`` list the same triangle in the opposite orientation?"""
+    position = np.argmax(before == after[:, :1], axis=1)
+    return before[np.arange(len(before)), (position + 1) % 3] != after[:, 1]
+
+
+def _fill_holes(points, triangles, label):
+    """Close each small hole with a fan from the centroid of its rim (the fan takes
+    the orientation of the triangles around it)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    edges = directed_edges(triangles)
+    _, which, count = edge_use(triangles)
+    rim = edges[count[which] == 1]
+    if not len(rim):
+        return points, triangles
+    n = len(points)
+    _, hole = connected_components(coo_matrix((np.ones(len(rim)), (rim[:, 0], rim[:, 1])), shape=(n, n)), directed=False)
+    hole_of_edge = np.unique(hole[rim[:, 0]], return_inverse=True)[1].ravel()
+    holes = hole_of_edge.max() + 1
+    centre = np.array([points[np.unique(rim[hole_of_edge == h])].mean(axis=0) for h in range(holes)])
+    radius = np.zeros(holes)
+    np.maximum.at(radius, hole_of_edge, np.linalg.norm(points[rim[:, 0]] - centre[hole_of_edge], axis=1))
+    limit = HOLE_FRACTION * np.linalg.norm(np.ptp(points[np.unique(triangles)], axis=0))
+    require(radius.max() <= limit, f"{label}: not a closed surface: an opening of radius {radius.max():.3g} "
+            f"at {_point(centre[np.argmax(radius)])} (openings up to {limit:.3g}, 5 % of its size, are filled)")
+    fan = np.c_[rim[:, 1], rim[:, 0], n + hole_of_edge]
+    log.info(f"{label}: filled {holes} hole(s) (largest radius {radius.max():.3g}, {len(rim)} rim edges)")
+    return np.vstack([points, centre]), np.vstack([triangles, fan])
+
+
+def _orient_outward(points, triangles, label):
+    component = _components(triangles)
+    inward = [c for c in range(component.max() + 1)
+              if enclosed_volume(points, triangles[component == c]) < 0]
+    if inward:
+        log.info(f"{label}: turned the inward-facing normals of {len(inward)} component(s) outward")
+        flip = np.isin(component, inward)
+        triangles = triangles.copy()
+        triangles[flip] = triangles[flip][:, [0, 2, 1]]
+    return triangles, component
+
+
+def self_intersecting(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Triangles whose two sides do not see winding numbers 1 (inside) and 0 (outside):
+    on a closed outward surface that does not pass through itself there are none."""
+    import igl
+
+    a, b, c = (points[triangles[:, k]] for k in range(3))
+    normal = np.cross(b - a, c - a)
+    length = np.linalg.norm(normal, axis=1)
+    ok = length > 0
+    centroid = (a + b + c) / 3
+    # a hundredth of the triangle's size off its centroid, on either side
+    offset = 0.01 * (normal[ok] / np.sqrt(length[ok])[:, None])
+    probes = np.vstack([centroid[ok] - offset, centroid[ok] + offset])
+    w = igl.fast_winding_number(points, triangles, probes).reshape(2, -1)
+    bad = np.zeros(len(triangles), bool)
+    bad[ok] = (np.abs(w[0] - 1) > 0.5) | (np.abs(w[1]) > 0.5)
+    return bad
+
+
+def closed_shells(path: Path, label: str, role: str, name: str) -> list[Shell]:
+    """The file's closed components, repaired (see the module docstring), outward."""
+    points, triangles = read_triangles(path, label)
+    points, triangles = _merge_points(points, triangles, label)
+    triangles = _drop_bad_triangles(triangles, label)
+    require(len(triangles) > 0, f"{label}: no triangles left after dropping collapsed ones")
+    triangles = _drop_specks(points, triangles, label)
+    edges, _, count = edge_use(triangles)
+    require(count.max() <= 2, f"{label}: {np.sum(count > 2)} edges are shared by more than two triangles "
+            f"(non-manifold, e.g. near {_point(points[edges[np.argmax(count)]].mean(axis=0))}); "
+            "cannot make it a closed surface")
+    triangles = _orient_consistently(triangles, label)
+    points, triangles = _fill_holes(points, triangles, label)
+    _, _, count = edge_use(triangles)
+    require((count == 2).all(),
+            f"{label}: cannot be made a closed surface ({np.sum(count != 2)} edges not shared by two triangles)")
+    triangles, component = _orient_outward(points, triangles, label)
+    shells = [_shell(role, name, label, points, triangles[component == c]) for c in range(component.max() + 1)]
+    for shell in shells:  # one by one: a piece inside another sees winding number 2, rightly
+        crossing = self_intersecting(shell.points, shell.triangles)
+        if crossing.any():
+            where = shell.points[shell.triangles[crossing][0]].mean(axis=0)
+            raise UserError(f"{label}: the surface passes through itself ({crossing.sum()} triangles, e.g. near "
+                            f"{_point(where)}); cannot use it")
+    return shells
+
+
+def _point(x: np.ndarray) -> str:
+    return "(" + ", ".join(f"{v:.4g}" for v in x) + ")"
+
+
+def _shell(role, name, label, points, triangles) -> Shell:
+    used, local = np.unique(triangles, return_inverse=True)
+    return Shell(role, name, label, points[used], local.reshape(-1, 3))
+
+
+# --------------------------------------------------------------------------- features
+
+
+def sharp_edges(points: np.ndarray, triangles: np.ndarray, degrees: float = 45.0) -> np.ndarray:
+    """Edges where the surface turns by more than ``degrees`` (a box's edges)."""
+    import igl
+
+    return np.asarray(igl.sharp_edges(points, triangles, np.radians(degrees)), dtype=np.int64).reshape(-1, 2)
+
+
+def cut_by_planes(shell: Shell, planes: list[tuple[np.ndarray, np.ndarray]]) -> Shell:
+    """The shell cut along each plane (point, normal) through its triangles: every
+    triangle lies on one side of every plane; ``patches`` gets bit p for the side
+    (c - point) . normal > 0 of plane p, and the cut lines join ``features``."""
+    import pyvista as pv
+
+    surface = pv.PolyData.from_regular_faces(shell.points, shell.triangles)
+    for point, normal in planes:
+        with quiet_vtk(raise_errors=True):
+            surface = _cut(surface, point, normal)
+    points = np.asarray(surface.points, dtype=float)
+    triangles = surface.faces.reshape(-1, 4)[:, 1:].astype(np.int64)
+    centroid = points[triangles].mean(axis=1)
+    bits = np.zeros(len(triangles), np.int64)
+    for p, (point, normal) in enumerate(planes):
+        bits |= ((centroid - point) @ normal > 0).astype(np.int64) << p
+    _, which, count = edge_use(triangles)
+    require((count == 2).all(), f"{shell.label}: cutting it along the patch planes left it open (please report)")
+    edges = np.sort(directed_edges(triangles), axis=1)
+    side = np.repeat(bits, 3)
+    first = np.full(len(count), -1)
+    first[which[::-1]] = side[::-1]  # the bits of one of each edge's two triangles
+    cut = edges[side != first[which]]
+    cut = cut[np.unique(row_keys(cut), return_index=True)[1]]
+    # the only features before a cut are a box's sharp edges, now split where the planes cross them
+    sharp = sharp_edges(points, triangles) if len(shell.features) else np.empty((0, 2), np.int64)
+    return Shell(shell.role, shell.name, shell.label, points, triangles, np.vstack([sharp, cut]), bits)
+
+
+def _cut(surface, point, normal):
+    """Both sides of the plane, welded back into one triangulation along the cut."""
+    import pyvista as pv
+
+    above, below = surface.clip(normal=-np.asarray(normal), origin=point, return_clipped=True)
+    both = pv.merge([above.extract_surface(algorithm="dataset_surface"), below.extract_surface(algorithm="dataset_surface")])
+    return both.triangulate().clean(tolerance=1e-9, absolute=False)

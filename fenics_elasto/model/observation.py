@@ -1,0 +1,231 @@
+"""Where the model is observed: matched surface nodes and landmark points.
+
+The observed positions are linear in the displacement, y = y0 + O u:
+- a matched node's row picks its nodal value (on a straight-sided P2 mesh only the
+  vertices are on the geometry the mesh stands for; see ``matched_vertices_only``);
+- a landmark (an implanted fiducial, any point inside the body) interpolates the
+  finite-element displacement at its source point: sum_i phi_i(x) u_i over the DOFs of
+  the cell holding x.
+
+Rows: the matched nodes first (canonical order, the same under any number of MPI
+ranks), then the landmarks (in the order given). Every rank holds all rows.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from mpi4py import MPI
+
+import dolfinx
+import dolfinx.geometry as geo
+from dolfinx import la
+
+from scipy.spatial import cKDTree
+
+from fenics_elasto.model.elasticity import ElasticModel, NodeSet
+from fenics_elasto.util.errors import UserError, require
+
+
+def matched_vertices_only(scene, model: ElasticModel) -> bool:
+    """``match_nodes``: "vertices", "all", or "auto" -- all nodes only where every node
+    lies on the geometry: P1, or P2 on a curved (order-2 geometry) mesh. On a
+    straight-sided mesh a P2 edge midpoint sits on the chord of a curved boundary, up
+    to its sag inside the surface a target describes: a fake displacement."""
+    rule = scene.match_nodes
+    if rule == "auto":
+        return scene.degree > scene.mesh.geometry.cmaps[0].degree
+    return rule == "vertices"
+
+
+def elementwise_min(comm, values: np.ndarray) -> np.ndarray:
+    """The minimum over the ranks of each entry. (mpi4py's lower-case allreduce with
+    MPI.MIN compares whole arrays with Python's min, which numpy refuses.)"""
+    values = np.ascontiguousarray(values)
+    out = np.empty_like(values)
+    comm.Allreduce(values, out, op=MPI.MIN)
+    return out
+
+
+class PointProbe:
+    """u at fixed points anywhere in the mesh (each point evaluated on one rank).
+
+    A point a hair outside the mesh (a node of a coarse curved boundary against a
+    finer mesh) takes the value of the closest cell's polynomial; ``tolerance`` bounds
+    how far outside a point may lie.
+    """
+
+    def __init__(self, V, points: np.ndarray, tolerance: float = np.inf):
+        mesh = V.mesh
+        self.V, self.comm = V, mesh.comm
+        self.gdim = mesh.geometry.dim
+        self.count = len(points)
+        cells, distance = self._closest_cells(mesh, points)
+        best = elementwise_min(self.comm, distance)
+        require(np.all(best <= tolerance), f"{int(np.sum(best > tolerance))} point(s) lie outside the body "
+                f"(worst {best.max():.3g} from it, tolerance {tolerance:.3g}): the first is "
+                f"{np.round(points[np.argmax(best > tolerance)], 6).tolist()}")
+        node, at_node = self._nodes_at(points)
+        mine = (cells >= 0) & (distance == best)
+        claim = elementwise_min(self.comm, np.where(mine, self.comm.rank, self.comm.size))
+        node_claim = elementwise_min(self.comm, np.where(at_node, self.comm.rank, self.comm.size))
+        claim = np.where(node_claim < self.comm.size, node_claim, claim)
+        self.rows = np.flatnonzero(claim == self.comm.rank)
+        self.blocks, self.weights = self._weights(mesh, points[self.rows], cells[self.rows])
+        snapped = at_node[self.rows]  # a point at a node of V takes that node's value exactly
+        self.blocks[snapped] = node[self.rows][snapped, None]
+        self.weights[snapped] = 0.0
+        self.weights[snapped, 0] = 1.0
+
+    def _nodes_at(self, points):
+        """(node, found): the owned node of V at each point, where there is one."""
+        owned = self.V.tabulate_dof_coordinates()[: self.V.dofmap.index_map.size_local, : self.gdim]
+        if not len(owned) or not len(points):
+            return np.zeros(len(points), np.int32), np.zeros(len(points), bool)
+        gap, node = cKDTree(owned).query(points)
+        scale = max(1.0, float(np.abs(owned).max()))
+        return node.astype(np.int32), gap <= 1e-10 * scale
+
+    def _closest_cells(self, mesh, points):
+        tdim = mesh.topology.dim
+        xyz = np.zeros((len(points), 3))
+        xyz[:, : self.gdim] = points
+        owned = np.arange(mesh.topology.index_map(tdim).size_local, dtype=np.int32)
+        distance = np.full(len(points), np.inf)
+        if len(owned) == 0 or len(points) == 0:
+            return np.full(len(points), -1, np.int32), distance
+        tree = geo.bb_tree(mesh, tdim, entities=owned)
+        cells = geo.compute_closest_entity(tree, geo.create_midpoint_tree(mesh, tdim, owned), mesh, xyz)
+        found = cells >= 0
+        distance[found] = np.sqrt(geo.squared_distance(mesh, tdim, cells[found], xyz[found]))
+        return cells, distance
+
+    def _weights(self, mesh, points, cells):
+        """(blocks, phi) per point: the cell's DOF blocks and its basis functions at the point."""
+        element = self.V.ufl_element().basix_element
+        blocks = self.V.dofmap.list[cells] if len(cells) else np.zeros((0, self.V.dofmap.list.shape[1]), np.int32)
+        reference = np.array([self._pull_back(mesh, p, c) for p, c in zip(points, cells)]).reshape(len(cells), -1)
+        phi = element.tabulate(0, reference)[0] if len(cells) else np.zeros(blocks.shape)
+        return blocks, phi.reshape(len(cells), -1)
+
+    def _pull_back(self, mesh, point, cell) -> np.ndarray:
+        """The point's reference coordinates in the cell: Newton on the cell's (curved)
+        map; where that fails (a point outside a curved cell), the affine map of its
+        vertices -- exact at the vertices, close to it near the cell."""
+        cmap = mesh.geometry.cmaps[0]
+        nodes = mesh.geometry.x[mesh.geometry.dofmaps[0][cell], : self.gdim]
+        try:
+            return cmap.pull_back(point[None, :], nodes)[0]
+        except RuntimeError:
+            corners = nodes[: self.gdim + 1]
+            return np.linalg.solve((corners[1:] - corners[0]).T, point - corners[0])
+
+    def values(self, array: np.ndarray) -> np.ndarray:
+        """(count, gdim) values of a Function's local array (ghosts up to date), all ranks."""
+        out = np.zeros((self.count, self.gdim))
+        local = array.reshape(-1, self.gdim)
+        out[self.rows] = np.einsum("pi,pid->pd", self.weights, local[self.blocks])
+        return self.comm.allreduce(out, op=MPI.SUM)
+
+    def add_transpose(self, r: np.ndarray, array: np.ndarray) -> None:
+        """array += O^T r on this rank's local entries (ghosts included: scatter them back)."""
+        local = array.reshape(-1, self.gdim)
+        np.add.at(local, self.blocks.ravel(), (self.weights[:, :, None] * r[self.rows][:, None, :]).reshape(-1, self.gdim))
+
+
+def probe(u: dolfinx.fem.Function, points: np.ndarray) -> np.ndarray:
+    """u at arbitrary points (every rank gets all values)."""
+    return PointProbe(u.function_space, points).values(u.x.array)
+
+
+class Observation:
+    """y = y0 + O u at the matched nodes, then at the landmark points."""
+
+    def __init__(self, model: ElasticModel, scene, landmarks: np.ndarray | None = None):
+        self.model = model
+        self.gdim = model.gdim
+        self.vertices_only = matched_vertices_only(scene, model)
+        self.nodes: NodeSet = model.node_set(scene.matched, vertices_only=self.vertices_only)
+        self.node_points = self.nodes.gather(self.nodes.coords)
+        self.landmarks = np.zeros((0, self.gdim)) if landmarks is None else np.asarray(landmarks, float)
+        size = np.ptp(model.dof_coords, axis=0).max() if len(model.dof_coords) else 0.0
+        size = model.comm.allreduce(size, op=MPI.MAX)
+        try:
+            self.probe = PointProbe(model.V, self.landmarks, tolerance=0.02 * size) if len(self.landmarks) else None
+        except UserError as err:  # name the file the points came from
+            raise UserError(f"{scene.path.parent / (scene.config['target'] or {}).get('landmarks', '')}: {err}") from None
+        self.points = np.concatenate([self.node_points, self.landmarks])
+
+    @property
+    def count(self) -> int:
+        return len(self.points)
+
+    @property
+    def node_count(self) -> int:
+        return len(self.node_points)
+
+    def values(self, u: dolfinx.fem.Function) -> np.ndarray:
+        """(count, gdim) O u (u's ghosts up to date)."""
+        array = u.x.array
+        nodal = self.nodes.gather(array.reshape(-1, self.model.bs)[self.nodes.blocks])
+        if self.probe is None:
+            return nodal
+        return np.concatenate([nodal, self.probe.values(array)])
+
+    def positions(self, u: dolfinx.fem.Function) -> np.ndarray:
+        return self.points + self.values(u)
+
+    def node_field(self, values: np.ndarray) -> dolfinx.fem.Function:
+        """A field holding per-node rows (canonical order) at the matched nodes, zero at
+        the other nodes -- except, when only vertices are matched, the edge midpoints
+        between matched vertices, which follow them linearly (as on the chord)."""
+        f = self.model.function("matched")
+        f.x.array.reshape(-1, self.model.bs)[self.nodes.blocks] = self.nodes.local(values)
+        f.x.scatter_forward()
+        if not self.vertices_only:
+            return f
+        mesh = self.model.V.mesh
+        linear = dolfinx.fem.Function(dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (self.gdim,))))
+        linear.interpolate(f)  # the vertex values
+        out = self.model.function("matched")
+        out.interpolate(linear)  # midpoints: the mean of their edge's vertices
+        ends = self._on_matched_facets()
+        array = out.x.array.reshape(-1, self.model.bs)
+        array[~ends] = 0.0  # only between matched vertices, as the nodes themselves
+        array[self.nodes.blocks] = f.x.array.reshape(-1, self.model.bs)[self.nodes.blocks]
+        return out
+
+    def _on_matched_facets(self) -> np.ndarray:
+        """Mask over V's local blocks: every node (midpoints too) of the matched facets."""
+        scene = self.model.scene
+        blocks = self.model.boundary_blocks(scene.matched, vertices_only=False)
+        mask = np.zeros(len(self.model.V.tabulate_dof_coordinates()), bool)
+        mask[blocks] = True
+        return mask
+
+    def transpose(self, r: np.ndarray) -> dolfinx.fem.Function:
+        """A Function holding O^T r (owned entries exact): the adjoint load."""
+        f = self.model.function("adjoint_load")
+        array = f.x.array.reshape(-1, self.model.bs)
+        array[self.nodes.blocks] = self.nodes.local(r[: self.node_count])
+        if self.probe is not None:
+            landmark = self.model.function("landmark_load")
+            self.probe.add_transpose(r[self.node_count:], landmark.x.array)
+            landmark.x.scatter_reverse(la.InsertMode.add)
+            owned = self.model.n_owned_blocks * self.model.bs
+            f.x.array[:owned] += landmark.x.array[:owned]
+        return f
+
+    def rows(self, X: np.ndarray) -> np.ndarray:
+        """(count, gdim, k) O X for owned-row DOF columns X."""
+        bs = self.model.bs
+        nodal = self.nodes.gather(X[self.nodes.dofs(bs).ravel()].reshape(len(self.nodes), self.gdim, -1))
+        if self.probe is None:
+            return nodal
+        column = self.model.function("column")
+        owned = self.model.n_owned_blocks * bs
+        parts = []
+        for k in range(X.shape[1]):  # a handful of modes: each needs its ghost values
+            column.x.array[:owned] = X[:, k]
+            column.x.scatter_forward()
+            parts.append(self.probe.values(column.x.array))
+        return np.concatenate([nodal, np.stack(parts, axis=2) if parts else np.zeros((len(self.landmarks), self.gdim, 0))])

@@ -1,0 +1,692 @@
+"""Linear solves K x = b: direct factorizations that keep their analysis, CG with
+algebraic multigrid for big meshes, and no failure that goes unnoticed.
+
+Every K here is sum_j c_j M_j with identity rows and columns on the clamped DOFs
+(elasticity.py): its values change with the materials, its sparsity never does.
+
+* **direct** (MUMPS LU or Cholesky through PETSc). A solver object keeps its KSP and
+  its matrix; new material values refill the matrix in place (same nonzero pattern),
+  so PETSc refactors numerically only and MUMPS's ordering and symbolic analysis are
+  paid once per object (measured: ~6 % of a factorization here; the numeric phase is
+  the cost). Optional block low-rank compression (``blr``: MUMPS ICNTL(35), dropping
+  tolerance CNTL(7)) makes factors smaller (116k DOFs: -13 % entries at 1e-8, -49 % at
+  1e-4) but approximate; every solution is therefore refined against the true K
+  (x += F^-1 (b - K x) while that halves the residual, then GMRES preconditioned by
+  the same factors) until ||b - K x|| <= rtol ||b||, so the answer is exact to rtol
+  with or without compression. The residual check costs one product with K and also
+  catches a factorization that "succeeded" on a singular K.
+* **iterative**: CG preconditioned by PETSc's GAMG (smoothed aggregation) with the
+  rigid-body near-nullspace (translations and rotations at the DOF coordinates:
+  3 modes in 2D, 6 in 3D); a new material value keeps the hierarchy's interpolation
+  and recomputes only the coarse operators. Block right-hand sides are solved column by
+  column (this PETSc has no block Krylov method), each from a warm start
+  (``WarmStart``).
+* **nearby** (``simulate``'s single solve, an estimate's solves after its first): a direct
+  solver already holding the factors of K(c0) for the same clamped set solves K(c) x = b
+  by CG preconditioned with those factors when c/c0 stays within ``NEARBY_RATIO``
+  (``NearbySolver``): a handful of back-solves instead of a new factorization. The same
+  factors (``SolverCache.closest``, ``DirectSolver.apply_factors``) precondition the
+  reduced estimate's refinement at its optimum (surrogate.MaterialSurrogate.refine).
+* **auto**: direct up to ``DIRECT_LIMIT`` DOFs, iterative beyond (the crossover measured
+  by benchmarks/scale.py on a 2-core, 24 GB machine).
+
+**Tolerance.** Solves stop at ||b - K x|| <= rtol ||b|| (default 1e-8). The misfit,
+its gradients (one adjoint solve) and the reduced responses are linear in the solved
+fields, so they inherit the fields' relative error, ~rtol times a modest factor (the
+fields' measured error at rtol 1e-8 is 1.5-2.6e-9 on the phantom at 32k and 116k DOFs,
+benchmarks/solvers.py; each decade of rtol costs ~3 CG iterations). The optimiser
+asks for far less: the outer loop stops when log E moves by less than 1e-3 and the
+inner one at a relative gradient of 1e-6, so 1e-8 keeps two to three digits of margin
+while a tighter rtol would only add CG iterations.
+
+**Checks.** Before the first factorization of a K above ``MEMORY_CHECK_DOFS`` DOFs,
+MUMPS's analysis alone (the numeric phase refused at once with a 1 MB workspace cap)
+says how much memory the factors will take; more than ``MEMORY_SHARE`` of what the
+machine has available (per node: the busiest rank's estimate times the ranks there)
+ends the run in one line -- Linux's OOM killer otherwise ends it without a word (it
+did, at 500k DOFs on 24 GB). After every factorization: MUMPS INFOG(1) (PETSc does not raise when MUMPS
+fails; a ``preonly`` solve then returns Inf). After every solve: the KSP converged
+reason, the residual and a finite solution. A failure raises ``SolverError`` (a
+UserError: the command line prints one line naming the cause and the remedy, exit 2).
+
+PETSc options: every KSP here has the prefix ``elasto_``, so PETSC_OPTIONS can tune
+what the toolkit does not expose (``-elasto_mat_mumps_icntl_14 100``,
+``-elasto_pc_gamg_threshold 0.02``, ``-elasto_ksp_monitor``); options given that way
+win over the defaults set here.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import OrderedDict
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, replace
+
+import numpy as np
+from mpi4py import MPI
+from petsc4py import PETSc
+
+from fenics_elasto.util.budget import available_memory
+from fenics_elasto.util.errors import UserError
+
+PREFIX = "elasto_"
+DIRECT_LIMIT = 300_000  # DOFs: "auto" factorizes up to here (benchmarks/scale.py)
+MEMORY_CHECK_DOFS = 100_000  # direct: above this, MUMPS's analysis first (~6 % of a factorization)
+MEMORY_SHARE = 0.8  # ... and refuse factors estimated above this share of the available memory
+REFINEMENTS = 10  # direct: at most this many refinement steps per solve
+MAX_ITERATIONS = 2000  # iterative: CG iterations per right-hand side
+NEARBY_RATIO = 4.0  # NearbySolver: largest spread of c / c0 (CG ~ sqrt(ratio) log(2 / rtol) iterations)
+WARM_COLUMNS = (8, 64)  # WarmStart keeps at least 8 recent solutions, at most 64
+
+# GAMG beyond PETSc's defaults (benchmarks/solvers.py, 116k P2 DOFs): SOR smoothing
+# instead of Jacobi halves the CG iterations (27 instead of 51) at no extra setup; a drop
+# threshold of 0.02 would save 3 more iterations but costs 45 % more setup. The
+# interpolation is kept across material values (a refresh costs half a setup).
+GAMG_OPTIONS = {
+    "pc_gamg_type": "agg",
+    "pc_gamg_reuse_interpolation": "true",
+    "mg_levels_pc_type": "sor",
+}
+
+
+class SolverError(UserError):
+    """A factorization or solve failed; the message says why and what to change."""
+
+
+# --------------------------------------------------------------------------- settings
+
+
+@dataclass(frozen=True)
+class SolverSettings:
+    """The problem's ``[solver]`` table (config.py validates it)."""
+
+    method: str = "auto"  # "direct" | "iterative" | "auto"
+    rtol: float = 1e-8  # every solve: ||b - K x|| <= rtol ||b||
+    factor: str = "lu"  # direct: "lu" | "cholesky"
+    blr: float = 0.0  # direct: MUMPS block low-rank tolerance, 0 = off
+
+    @classmethod
+    def from_config(cls, table: dict | None) -> SolverSettings:
+        table = table or {}
+        return cls(**{key: table[key] for key in ("method", "rtol", "factor", "blr") if key in table})
+
+    def method_for(self, dofs: int) -> str:
+        if self.method != "auto":
+            return self.method
+        return "direct" if dofs <= DIRECT_LIMIT else "iterative"
+
+
+@dataclass
+class SolverStats:
+    """What the solves cost, for result.json (``as_dict``)."""
+
+    method: str
+    factorizations: int = 0  # numeric factorizations (direct)
+    analyses: int = 0  # orderings + symbolic analyses (direct)
+    setups: int = 0  # AMG hierarchies built or refreshed (iterative)
+    solves: int = 0  # right-hand sides solved
+    iterations: int = 0  # CG iterations (iterative); refinement + GMRES steps (direct)
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+# --------------------------------------------------------------------------- shared pieces
+
+
+def _set_defaults(options: dict) -> None:
+    """Our defaults under PREFIX, unless PETSC_OPTIONS (or the caller) set them already."""
+    db = PETSc.Options()
+    for key, value in options.items():
+        if not db.hasName(PREFIX + key):
+            db[PREFIX + key] = value
+
+
+def _new_ksp(K: PETSc.Mat) -> PETSc.KSP:
+    ksp = PETSc.KSP().create(K.getComm())
+    ksp.setOptionsPrefix(PREFIX)
+    ksp.setOperators(K)
+    return ksp
+
+
+def _norms(X: np.ndarray, comm) -> np.ndarray:
+    """Euclidean norms of the columns of a row-distributed (owned rows, k) array."""
+    return np.sqrt(comm.allreduce(np.einsum("ij,ij->j", X, X), op=MPI.SUM))
+
+
+def _columns(M) -> np.ndarray:
+    """A dense PETSc Mat's or a Vec's owned rows as a (rows, k) array view."""
+    return M.getDenseArray(readonly=True) if isinstance(M, PETSc.Mat) else M.array_r[:, None]
+
+
+def rigid_body_modes(coords: np.ndarray, comm) -> PETSc.NullSpace:
+    """Translations and rotations at the owned DOF nodes (n, gdim): the near-nullspace
+    that lets smoothed aggregation build elasticity's coarse spaces (PETSc's own
+    MatNullSpaceCreateRigidBody: 3 modes in 2D, 6 in 3D)."""
+    flat = np.ascontiguousarray(coords, dtype=PETSc.ScalarType).ravel()
+    x = PETSc.Vec().createWithArray(flat, bsize=coords.shape[1], comm=comm)
+    modes = PETSc.NullSpace().createRigidBody(x)
+    x.destroy()
+    return modes
+
+
+def check_finite(X, what: str, comm, hint: str = "the solver failed without saying so; try the other "
+                 "[solver] method (\"direct\" or \"iterative\")") -> np.ndarray:
+    """Column norms of X; a SolverError if any entry is NaN or Inf (the same on every rank)."""
+    norms = _norms(_columns(X), comm)
+    if not np.all(np.isfinite(norms)):
+        raise SolverError(f"{what} is not finite (NaN or Inf): {hint}")
+    return norms
+
+
+# --------------------------------------------------------------------------- MUMPS diagnosis
+
+_BAD_INPUT = "a load, a prescribed displacement or a material value is NaN or Inf"
+_SINGULAR = (-10, -6)
+_ALLOCATION = (-13, -5, -7, -22)
+_WORKSPACE = (-8, -9, -11, -12, -14, -15, -17, -20)
+
+
+def mumps_failure(infog1: int, infog2: int, dofs: int) -> SolverError:
+    """The one-line error for a MUMPS failure code INFOG(1) < 0 (MUMPS users' guide)."""
+    where = f"MUMPS failed factorizing K ({dofs} DOFs; INFOG(1) = {infog1}, INFOG(2) = {infog2})"
+    if infog1 in _SINGULAR:
+        cause = "K is singular: the body can still move rigidly; clamp a group that holds it ([boundary] fixed)"
+    elif infog1 in _ALLOCATION:
+        cause = ("out of memory: use [solver] method = \"iterative\", or blr = 1e-8 (compressed factors), "
+                 "or more MPI ranks (more machines)")
+    elif infog1 in _WORKSPACE:
+        cause = ("its workspace estimate was too small: raise it with PETSC_OPTIONS=\"-elasto_mat_mumps_icntl_14 200\" "
+                 "(percent), or use [solver] method = \"iterative\"")
+    elif infog1 == -19:
+        cause = ("it needs more memory than ICNTL(23) allows: raise -elasto_mat_mumps_icntl_23, use "
+                 "[solver] method = \"iterative\" or blr = 1e-8")
+    else:
+        cause = "see the MUMPS users' guide for this code; [solver] method = \"iterative\" avoids the factorization"
+    return SolverError(f"{where}: {cause}")
+
+
+def mumps_analysis(K: PETSc.Mat, factor: str = "lu") -> dict:
+    """MUMPS's analysis of K alone, no numeric phase: a throwaway KSP with a 1 MB
+    workspace cap, so the factorization stops at once (INFOG(1) = -19). Its estimates:
+    in-core factorization memory in MB (10^6 bytes) on the busiest rank, INFOG(16), and
+    over all ranks, INFOG(17); flops, RINFOG(1); and INFOG(1) itself."""
+    ksp = _new_ksp(K)
+    ksp.setType("preonly")
+    pc = ksp.getPC()
+    pc.setType(factor)
+    pc.setFactorSolverType("mumps")
+    pc.setFactorSetUpSolverType()
+    F = pc.getFactorMatrix()
+    F.setMumpsIcntl(23, 1)
+    ksp.setUp()
+    out = {"busiest MB": F.getMumpsInfog(16), "total MB": F.getMumpsInfog(17), "flops": F.getMumpsRinfog(1),
+           "infog1": F.getMumpsInfog(1)}
+    ksp.destroy()
+    return out
+
+
+def factor_memory(K: PETSc.Mat, factor: str) -> float:
+    """Bytes MUMPS's analysis of K says its in-core factorization needs on the busiest
+    node: the busiest rank's estimate times the ranks sharing its node, capped by the
+    total."""
+    analysis = mumps_analysis(K, factor)
+    busiest, total = analysis["busiest MB"], analysis["total MB"]
+    node = K.getComm().tompi4py().Split_type(MPI.COMM_TYPE_SHARED)
+    ranks_here = node.Get_size()
+    node.Free()
+    return 1e6 * min(busiest * ranks_here, total)
+
+
+def check_factor_fits(K: PETSc.Mat, factor: str, dofs: int, need: float | None = None) -> float:
+    """A SolverError, the same on every rank, if the factors would not fit in the memory
+    available now; else the bytes they need (``need``: known already, from the analysis
+    of a matrix with K's pattern, which is all it depends on)."""
+    comm = K.getComm().tompi4py()
+    need = factor_memory(K, factor) if need is None else need
+    have = available_memory()
+    if comm.allreduce(need > MEMORY_SHARE * have, op=MPI.LOR):
+        need, have = comm.allreduce(need, op=MPI.MAX), comm.allreduce(have, op=MPI.MIN)
+        raise SolverError(f"the direct factorization of K ({dofs:,} DOFs) needs ~{need / 1e9:.3g} GB "
+                          f"(MUMPS's analysis), over {MEMORY_SHARE:.0%} of the {have / 1e9:.3g} GB this machine "
+                          f"has available: "
+                          f"use [solver] method = \"iterative\" (or \"auto\"), or more machines")
+    return need
+
+
+def _check_factor(pc: PETSc.PC, dofs: int) -> None:
+    F = pc.getFactorMatrix()
+    infog1 = F.getMumpsInfog(1)  # global: the same on every rank
+    if infog1 < 0:
+        raise mumps_failure(infog1, F.getMumpsInfog(2), dofs)
+    if pc.getFailedReason() != 0:
+        raise SolverError(f"the factorization of K ({dofs} DOFs) failed (PETSc PC failed reason "
+                          f"{pc.getFailedReason()}); try [solver] method = \"iterative\"")
+
+
+# --------------------------------------------------------------------------- solvers
+
+
+class LinearSolver:
+    """K x = b for one K (owned: refilled in place by the model, then ``refresh``)."""
+
+    def __init__(self, K: PETSc.Mat, clamped: np.ndarray, settings: SolverSettings, stats: SolverStats):
+        self.K, self.clamped, self.settings, self.stats = K, clamped, settings, stats
+        self.comm = K.getComm().tompi4py()
+        self.dofs = K.getSize()[0]
+        self.ksp = _new_ksp(K)
+
+    def refresh(self) -> None:
+        """K's values changed (same pattern): redo the numeric part only."""
+        self.ksp.setOperators(self.K)
+        self._setup()
+
+    def _setup(self) -> None:
+        raise NotImplementedError
+
+    def solve(self, b: PETSc.Vec, x: PETSc.Vec) -> None:
+        raise NotImplementedError
+
+    def solve_many(self, B: PETSc.Mat, X: PETSc.Mat) -> None:
+        """A dense block of right-hand sides (owned rows, k columns) at once."""
+        raise NotImplementedError
+
+    def destroy(self) -> None:
+        self.ksp.destroy()
+        self.K.destroy()
+
+
+class DirectSolver(LinearSolver):
+    """MUMPS LU or Cholesky; analysis kept across refreshes; solutions refined to rtol.
+    Above MEMORY_CHECK_DOFS the factors must fit the memory available first
+    (``factor_need``: their size from an earlier analysis of this pattern, if known)."""
+
+    def __init__(self, K, clamped, settings, stats, factor_need: float | None = None):
+        super().__init__(K, clamped, settings, stats)
+        self.ksp.setType("preonly")
+        pc = self.ksp.getPC()
+        pc.setType(settings.factor)
+        pc.setFactorSolverType("mumps")
+        if settings.factor == "cholesky":
+            K.setOption(PETSc.Mat.Option.SPD, True)
+        self.ksp.setFromOptions()
+        pc.setFactorSetUpSolverType()
+        if settings.blr > 0:
+            F = pc.getFactorMatrix()
+            F.setMumpsIcntl(35, 2)  # block low-rank in factorization and solve
+            F.setMumpsCntl(7, settings.blr)  # dropping tolerance of the low-rank blocks
+        self._analysed = False
+        self.factor_need = factor_need
+        if self.dofs > MEMORY_CHECK_DOFS:
+            self.factor_need = check_factor_fits(K, settings.factor, self.dofs, factor_need)
+        self._setup()
+
+    def _setup(self) -> None:
+        start = time.perf_counter()
+        self.ksp.setUp()
+        _check_factor(self.ksp.getPC(), self.dofs)
+        self.seconds = time.perf_counter() - start  # what another factorization would cost
+        self.stats.analyses += not self._analysed
+        self.stats.factorizations += 1
+        self._analysed = True
+
+    @property
+    def factor(self) -> PETSc.Mat:
+        return self.ksp.getPC().getFactorMatrix()
+
+    def solve(self, b, x):
+        self.apply_factors(b, x)
+        self._refine(b, x)
+
+    def solve_many(self, B, X):
+        self.apply_factors(B, X)
+        self._refine(B, X)
+
+    def apply_factors(self, B, X) -> None:
+        """X = F^-1 B through the factors, unrefined (a Vec, or a dense block by
+        MatMatSolve): the first step of ``solve``, and a preconditioner of K at a nearby
+        material value."""
+        if isinstance(B, PETSc.Vec):
+            self.ksp.solve(B, X)
+            if self.ksp.getConvergedReason() < 0:
+                _check_factor(self.ksp.getPC(), self.dofs)
+                raise SolverError(f"the direct solve failed (KSP reason {self.ksp.getConvergedReason()})")
+        else:
+            self.factor.matSolve(B, X)
+
+    def _refine(self, B, X) -> None:
+        """Iterative refinement on the true K, X += F^-1 (B - K X), while every open column's
+        residual at least halves per step; columns still above rtol then go through GMRES
+        preconditioned by the factors (loose BLR factors). With exact factors, a
+        refinement that stalls means a singular K."""
+        scale = self.settings.rtol * check_finite(B, "the right-hand side", self.comm, _BAD_INPUT)
+        self.stats.solves += _columns(B).shape[1]
+        last = None
+        for step in range(REFINEMENTS + 1):
+            R = _residual(self.K, B, X)
+            r = check_finite(R, "the direct solution's residual", self.comm)
+            open_ = r > scale
+            slow = last is not None and np.any(r[open_] > 0.5 * last[open_])
+            if not open_.any() or slow or step == REFINEMENTS:
+                break
+            D = R.duplicate()
+            self.apply_factors(R, D)
+            X.axpy(1.0, D)
+            for M in (D, R):
+                M.destroy()
+            self.stats.iterations += 1
+            last = r
+        R.destroy()
+        if open_.any():
+            relative = float(np.max(r / np.maximum(scale / self.settings.rtol, 1e-300)))
+            if self.settings.blr == 0:
+                raise self._stalled(relative)
+            self._gmres(B, X, np.flatnonzero(open_))
+        check_finite(X, "the direct solution", self.comm)
+
+    def _gmres(self, B, X, columns) -> None:
+        """GMRES on K preconditioned by the (compressed) factors, from X, for these columns."""
+        ksp = PETSc.KSP().create(self.K.getComm())
+        ksp.setOperators(self.K)
+        ksp.setPC(self.ksp.getPC())  # the same factors, not a new factorization
+        ksp.setType("gmres")
+        ksp.setPCSide(PETSc.PC.Side.RIGHT)  # its residual norm is the true ||b - K x||
+        ksp.setTolerances(rtol=self.settings.rtol, max_it=200)
+        ksp.setInitialGuessNonzero(True)
+        try:
+            for i in columns:
+                b, x = (B, X) if isinstance(B, PETSc.Vec) else (B.getDenseColumnVec(i, "r"), X.getDenseColumnVec(i))
+                ksp.solve(b, x)
+                self.stats.iterations += ksp.getIterationNumber()
+                if not isinstance(B, PETSc.Vec):
+                    B.restoreDenseColumnVec(i, "r")
+                    X.restoreDenseColumnVec(i)
+                if ksp.getConvergedReason() < 0:
+                    raise SolverError(
+                        f"the direct solve with block low-rank factors stays above rtol {self.settings.rtol:g} "
+                        f"(GMRES: {_reason_name(ksp.getConvergedReason())}): lower [solver] blr, or set it to 0")
+        finally:
+            ksp.destroy()
+
+    def _stalled(self, residual: float) -> SolverError:
+        where = (f"the direct solve's relative residual stays at {residual:.2g} > rtol {self.settings.rtol:g} "
+                 f"after {REFINEMENTS} refinement steps")
+        if residual < 1e-11:
+            return SolverError(f"{where}: that rtol is below what double precision reaches here; raise [solver] rtol")
+        return SolverError(f"{where}: K is (nearly) singular -- clamp a group that stops every rigid motion -- "
+                           "or [solver] blr is too loose")
+
+
+def _residual(K: PETSc.Mat, B, X):
+    """B - K X, for a Vec or a dense block."""
+    if isinstance(B, PETSc.Vec):
+        R = B.duplicate()
+        K.mult(X, R)
+        R.aypx(-1.0, B)
+        return R
+    R = K.matMult(X)
+    R.scale(-1.0)
+    R.axpy(1.0, B)
+    return R
+
+
+class IterativeSolver(LinearSolver):
+    """CG + GAMG (rigid-body near-nullspace), warm-started; checked after every solve."""
+
+    def __init__(self, K, clamped, settings, stats, modes: PETSc.NullSpace, warm: WarmStart):
+        super().__init__(K, clamped, settings, stats)
+        K.setNearNullSpace(modes)
+        self.warm = warm
+        ksp = self.ksp
+        ksp.setType("cg")
+        ksp.setNormType(PETSc.KSP.NormType.UNPRECONDITIONED)  # rtol bounds ||b - K x|| / ||b||
+        ksp.setTolerances(rtol=settings.rtol, max_it=MAX_ITERATIONS)
+        ksp.setInitialGuessNonzero(True)
+        ksp.getPC().setType("gamg")
+        _set_defaults(GAMG_OPTIONS)
+        ksp.setFromOptions()
+        self._setup()
+
+    def _setup(self) -> None:
+        self.ksp.setUp()
+        reason = self.ksp.getPC().getFailedReason()
+        if reason != 0:
+            raise SolverError(f"the AMG preconditioner of K ({self.dofs} DOFs) failed to set up (PETSc reason "
+                              f"{reason}); try [solver] method = \"direct\"")
+        self.stats.setups += 1
+
+    def solve(self, b, x):
+        check_finite(b, "the right-hand side", self.comm, _BAD_INPUT)
+        x.array[:] = self.warm.guess(self.K, b.array[:, None])[:, 0]
+        self._krylov(b, x)
+        self.warm.remember(self.K, x.array[:, None], b.array[:, None])
+
+    def solve_many(self, B, X):
+        check_finite(B, "the right-hand side", self.comm, _BAD_INPUT)
+        X.getDenseArray()[:] = self.warm.guess(self.K, B.getDenseArray())
+        for i in range(B.getSize()[1]):
+            b, x = B.getDenseColumnVec(i, "r"), X.getDenseColumnVec(i, "rw")
+            try:
+                self._krylov(b, x)
+            finally:
+                B.restoreDenseColumnVec(i, "r")
+                X.restoreDenseColumnVec(i, "rw")
+        self.warm.remember(self.K, X.getDenseArray(), B.getDenseArray())
+
+    def _krylov(self, b, x) -> None:
+        _krylov(self, b, x, "CG + AMG", ": use [solver] method = \"direct\", or a larger rtol")
+
+
+class NearbySolver(LinearSolver):
+    """K(c) x = b by CG preconditioned with the factors of K(c0) (a DirectSolver of the
+    same clamped set): no factorization. K(c) and K(c0) are sums of the same positive
+    semidefinite material matrices, so the preconditioned spectrum lies within
+    [min c/c0, max c/c0] and CG needs at most ~sqrt(ratio) log(2 / rtol) steps -- far
+    fewer when one region changes, most of the spectrum then sitting at 1 (the demo's
+    55k-DOF target mesh, from the factors at prostate E 50: E 25 in 7 steps, 0.87 s, E 75
+    in 5, 0.66 s, each against a 4.9 s factorization; equal to fresh direct solves to
+    1.3e-8). Owns K(c); the factors stay the other solver's."""
+
+    def __init__(self, K, clamped, settings, stats, base: DirectSolver):
+        super().__init__(K, clamped, settings, stats)
+        ksp = self.ksp
+        ksp.setType("cg")
+        ksp.setNormType(PETSc.KSP.NormType.UNPRECONDITIONED)  # rtol bounds ||b - K x|| / ||b||
+        ksp.setTolerances(rtol=settings.rtol, max_it=MAX_ITERATIONS)
+        pc = ksp.getPC()
+        pc.setType(PETSc.PC.Type.PYTHON)
+        pc.setPythonContext(_FactorsOf(base))
+        ksp.setUp()
+
+    def solve(self, b, x):
+        check_finite(b, "the right-hand side", self.comm, _BAD_INPUT)
+        _krylov(self, b, x, "CG preconditioned by the factors of a nearby material value", "")
+
+    def solve_many(self, B, X):
+        """Column by column (a few columns: a response to one more mode, a derivative per
+        constant; big blocks borrow through the surrogate's refinement instead)."""
+        b, x = self.K.createVecs()
+        for j in range(B.getSize()[1]):
+            b.array[:] = B.getDenseArray()[:, j]
+            self.solve(b, x)
+            X.getDenseArray()[:, j] = x.array_r
+        b.destroy()
+        x.destroy()
+
+
+def _krylov(solver: LinearSolver, b, x, name: str, remedy: str) -> None:
+    """One CG solve of ``solver`` (IterativeSolver, NearbySolver), counted and checked:
+    a SolverError naming ``name`` (and ``remedy``) unless it converged to rtol."""
+    ksp = solver.ksp
+    ksp.solve(b, x)
+    reason, its = ksp.getConvergedReason(), ksp.getIterationNumber()
+    solver.stats.solves += 1
+    solver.stats.iterations += its
+    if reason < 0:
+        raise SolverError(
+            f"{name} stopped after {its} iterations at relative residual "
+            f"{ksp.getResidualNorm() / max(b.norm(), 1e-300):.2g} (rtol {solver.settings.rtol:g}, "
+            f"PETSc reason {_reason_name(reason)}){remedy}")
+    x.array[solver.clamped] = b.array_r[solver.clamped]  # identity rows: exact, not to rtol
+    check_finite(x, "the iterative solution", solver.comm)
+
+
+class _FactorsOf:
+    """A PETSc python PC: y = F^-1 x through another solver's factors."""
+
+    def __init__(self, solver: DirectSolver):
+        self.solver = solver
+
+    def apply(self, pc, x, y):
+        self.solver.apply_factors(x, y)
+
+
+def _reason_name(reason: int) -> str:
+    names = {v: k for k, v in vars(PETSc.KSP.ConvergedReason).items() if isinstance(v, int)}
+    return names.get(reason, str(reason))
+
+
+class SolverCache:
+    """Ready solvers of K(c) per (c, clamped set), the ``size`` most recently used.
+
+    Two by default: alternating material values (a line search, a finite difference)
+    do not refactor. On a miss with a full cache, the least recently used solver of the
+    same clamped set is refilled in place (``stiffness(c, clamped, out=K)``: same
+    pattern) and refreshed -- MUMPS keeps its analysis, GAMG its interpolation --
+    instead of being destroyed and rebuilt from scratch.
+    """
+
+    def __init__(self, settings: SolverSettings, stats: SolverStats, stiffness: Callable,
+                 near_nullspace: Callable, size: int = 2):
+        self.settings, self.stats, self.size = settings, stats, size
+        self.stiffness = stiffness  # (c, clamped, out=None) -> K with identity rows on clamped
+        self.near_nullspace = near_nullspace  # () -> PETSc.NullSpace, built on first need
+        self._modes = None
+        self._solvers: OrderedDict = OrderedDict()
+        self._warm: dict = {}  # clamped set -> WarmStart, shared by its iterative solvers
+        self._factor_need: dict = {}  # clamped set -> bytes its direct factors need (one analysis each)
+
+    @staticmethod
+    def _key(c, clamped: np.ndarray) -> tuple:
+        return tuple(np.round(np.asarray(c, float), 12)), clamped.tobytes()
+
+    def get(self, c, clamped: np.ndarray) -> LinearSolver:
+        key = self._key(c, clamped)
+        if key in self._solvers:
+            self._solvers.move_to_end(key)
+            return self._solvers[key]
+        full = len(self._solvers) >= self.size
+        same = next((k for k in self._solvers if k[1] == key[1]), None) if full else None
+        if same is not None:
+            solver = self._solvers.pop(same)
+            self.stiffness(c, clamped, out=solver.K)
+            solver.refresh()
+        else:
+            while len(self._solvers) >= self.size:
+                self._solvers.popitem(last=False)[1].destroy()
+            solver = self._new(self.stiffness(c, clamped), clamped)
+        self._solvers[key] = solver
+        return solver
+
+    def nearby(self, c, clamped: np.ndarray, rtol: float | None = None) -> NearbySolver | None:
+        """A NearbySolver for K(c) on the factors ``closest`` finds (to ``rtol`` if given,
+        else the settings'); None if there are none. The caller destroys it after use: it
+        is not cached, so it never outlives the factors it borrows."""
+        base = self.closest(c, clamped)
+        if base is None:
+            return None
+        settings = self.settings if rtol is None else replace(self.settings, rtol=rtol)
+        return NearbySolver(self.stiffness(c, clamped), clamped, settings, self.stats, base)
+
+    def closest(self, c, clamped: np.ndarray) -> DirectSolver | None:
+        """The cached direct solver of the same clamped set whose coefficients c0 differ
+        from c by the least spread of c / c0 (which bounds the condition number of K(c)
+        preconditioned by its factors), if at most NEARBY_RATIO; None if there is none,
+        or if K(c) itself is cached."""
+        c = np.asarray(c, float)
+        key = self._key(c, clamped)
+        if key in self._solvers or self.stats.method != "direct":
+            return None
+        best = None
+        for (c0, pattern), solver in self._solvers.items():
+            c0 = np.asarray(c0)
+            if pattern != key[1] or np.any((c0 > 0) != (c > 0)):
+                continue
+            ratio = c[c > 0] / c0[c0 > 0]
+            spread = float(ratio.max() / ratio.min()) if len(ratio) else 1.0
+            if spread <= NEARBY_RATIO and (best is None or spread < best[0]):
+                best = (spread, solver)
+        return None if best is None else best[1]
+
+    def _new(self, K: PETSc.Mat, clamped: np.ndarray) -> LinearSolver:
+        if self.stats.method == "direct":
+            solver = DirectSolver(K, clamped, self.settings, self.stats, self._factor_need.get(clamped.tobytes()))
+            self._factor_need[clamped.tobytes()] = solver.factor_need
+            return solver
+        if self._modes is None:
+            self._modes = self.near_nullspace()
+        warm = self._warm.setdefault(clamped.tobytes(), WarmStart(K.getComm().tompi4py()))
+        return IterativeSolver(K, clamped, self.settings, self.stats, self._modes, warm)
+
+    def __iter__(self):
+        return iter(self._solvers.values())
+
+
+class WarmStart:
+    """CG initial guesses: the Galerkin projection of K x = b onto recent solutions.
+
+    x0 = S a with (S^T K S) a = S^T b minimises the energy-norm error over span(S), so it is
+    never worse than x0 = 0, for any right-hand side. S keeps the latest solutions of one
+    clamped set across material values: the fields at the previous theta are close to the
+    new ones, and the previous block of mode responses spans the new block well (the idea
+    of surrogate.py, here only to start CG). K S is carried along (K x = b up to rtol) and
+    recomputed when K changes.
+    """
+
+    def __init__(self, comm):
+        self.comm = comm
+        self.S = self.KS = None  # (owned rows, m)
+        self.state = None  # K's identity and state that KS belongs to
+        self.capacity = WARM_COLUMNS[0]
+
+    def guess(self, K: PETSc.Mat, B: np.ndarray) -> np.ndarray:
+        if self.S is None:
+            return np.zeros_like(B)
+        if self.KS is None or self.state != _state(K):
+            self.KS, self.state = _product(K, self.S), _state(K)
+        G = self.comm.allreduce(self.S.T @ self.KS, op=MPI.SUM)
+        lam, V = np.linalg.eigh(0.5 * (G + G.T))
+        keep = lam > 1e-12 * max(lam.max(), 0.0)
+        if not keep.any():
+            return np.zeros_like(B)
+        V = V[:, keep]
+        a = V @ ((V.T @ self.comm.allreduce(self.S.T @ B, op=MPI.SUM)) / lam[keep, None])
+        return self.S @ a
+
+    def remember(self, K: PETSc.Mat, X: np.ndarray, B: np.ndarray) -> None:
+        """Keep the solutions X of K X = B (newest first, up to ``capacity`` columns)."""
+        self.capacity = min(max(self.capacity, X.shape[1]), WARM_COLUMNS[1])
+        current = self.KS is not None and self.state == _state(K)
+        S = X if self.S is None else np.hstack([X, self.S])
+        KS = B if self.S is None else np.hstack([B, self.KS]) if current else None
+        self.S = S[:, : self.capacity].copy()
+        self.KS = None if KS is None else KS[:, : self.capacity].copy()
+        self.state = None if KS is None else _state(K)
+
+
+def _state(K: PETSc.Mat) -> tuple:
+    """Which matrix, and which values: PETSc bumps the state whenever K changes."""
+    return (K.handle, K.stateGet())
+
+
+def _product(K: PETSc.Mat, S: np.ndarray) -> np.ndarray:
+    """K S for owned-row columns S, through a distributed dense matrix."""
+    D = PETSc.Mat().createDense(((S.shape[0], PETSc.DETERMINE), (PETSc.DECIDE, S.shape[1])), comm=K.getComm())
+    D.setUp()
+    D.getDenseArray()[:] = S
+    D.assemble()
+    P = K.matMult(D)
+    out = P.getDenseArray().copy()
+    for M in (D, P):
+        M.destroy()
+    return out

@@ -1,0 +1,1 @@
+"""The built-in scenes' gmsh sources and problem templates (data only; installed with the package)."""
