@@ -20,7 +20,9 @@ import ufl
 
 import dolfinx.fem.petsc
 from dolfinx import fem
-from fenics_elasto.model.elasticity import ElasticModel, epsilon, stiffness_quadrature
+from fenics_elasto.model.elasticity import ElasticModel
+from fenics_elasto.model.materials import epsilon
+from fenics_elasto.model.stiffness import stiffness_quadrature
 from fenics_elasto.mesh.builtin import build_scene
 from fenics_elasto.model.scene import load_scene
 from fenics_elasto.model.simulate import material_values
@@ -39,14 +41,14 @@ def best_of(work, repeat=3):
 def direct_assembly(model, E, nu):
     """K assembled from scratch with per-cell Lame coefficients (what caching avoids)."""
     scene = model.scene
-    mu, lam = model.coefficients(E, nu).reshape(-1, 2).T
+    mu, lam = model.stiffness.coefficients(E, nu).reshape(-1, 2).T
     Q = fem.functionspace(scene.mesh, ("DG", 0))
     mu_f, lam_f = fem.Function(Q), fem.Function(Q)
     for m, material in enumerate(scene.materials):
         cells = Q.dofmap.list[scene.cell_tags.find(material.tag), 0]
         mu_f.x.array[cells], lam_f.x.array[cells] = mu[m], lam[m]
-    u, v = ufl.TrialFunction(model.V), ufl.TestFunction(model.V)
-    dx = ufl.dx(metadata=stiffness_quadrature(model.V))  # the model's rule: like is compared with like
+    u, v = ufl.TrialFunction(model.dofs.V), ufl.TestFunction(model.dofs.V)
+    dx = ufl.dx(metadata=stiffness_quadrature(model.dofs.V))  # the model's rule: like is compared with like
     form = fem.form(2 * mu_f * ufl.inner(epsilon(u), epsilon(v)) * dx + lam_f * ufl.div(u) * ufl.div(v) * dx)
 
     def assemble():
@@ -62,18 +64,18 @@ def measure(h, repeat):
         scene = load_scene(build_scene("prostate-phantom", Path(tmp), size=h))
         start = time.perf_counter()
         model = ElasticModel(scene)
-        model.terms  # assembled on first use
+        model.stiffness.terms  # assembled on first use
         setup = time.perf_counter() - start
     E, nu = material_values(scene)
-    c = model.coefficients(E, nu)
-    clamped = model.clamped_dofs(scene.fixed)
-    row = {"h": h, "dofs": model.num_dofs, "material matrices (once)": setup}
+    c = model.stiffness.coefficients(E, nu)
+    clamped = model.dofs.clamped_dofs(scene.fixed)
+    row = {"h": h, "dofs": model.dofs.num_dofs, "material matrices (once)": setup}
     row["assemble K"] = best_of(direct_assembly(model, E, nu), repeat)
-    row["K by lin. comb."] = best_of(lambda: model.stiffness(c).destroy(), repeat)
+    row["K by lin. comb."] = best_of(lambda: model.stiffness.matrix(c).destroy(), repeat)
 
     def factorize(kind):
         settings = SolverSettings(method="direct", factor=kind)
-        return DirectSolver(model.constrained_stiffness(c, clamped), clamped, settings, SolverStats("direct"))
+        return DirectSolver(model.stiffness.constrained(c, clamped), clamped, settings, SolverStats("direct"))
 
     for kind in ("lu", "cholesky"):
         row[f"{kind.upper()} factor"] = best_of(lambda: factorize(kind).destroy(), repeat)
@@ -82,8 +84,8 @@ def measure(h, repeat):
     b.setRandom()
     b.array[clamped] = 0.0
     row["back-solve"] = best_of(lambda: factor.solve(b, x), repeat)
-    columns = np.random.default_rng(0).standard_normal((model.n_owned_blocks * model.bs, 100))
-    B, X = model.dense(100), model.dense(100)
+    columns = np.random.default_rng(0).standard_normal((model.dofs.n_owned_blocks * model.dofs.bs, 100))
+    B, X = model.dofs.dense(100), model.dofs.dense(100)
     B.getDenseArray()[:] = columns
     B.getDenseArray()[clamped] = 0.0
     row["100 RHS block"] = best_of(lambda: factor.solve_many(B, X), repeat)

@@ -39,12 +39,12 @@ def gradient_costs(tmp: Path):
     forces = np.zeros(problem.force_dofs)
     problem.evaluate_forces(theta, forces)  # factorize once: the inner loop re-uses it
     c = problem.forward.coefficients(theta)[0]
-    f = problem.model.function("f")
+    f = problem.model.dofs.function("f")
     solve = timed(lambda: problem.model.solve(c, problem.forward.clamped, f.x.petsc_vec))
     forward = timed(lambda: problem.evaluate_forces(theta, forces))
     both = timed(lambda: problem.evaluate_forces(theta, forces, gradient=True))
     n = problem.force_dofs + len(theta)
-    print(f"phantom P2: {problem.model.num_dofs} dofs, {problem.force_dofs} force dofs, "
+    print(f"phantom P2: {problem.model.dofs.num_dofs} dofs, {problem.force_dofs} force dofs, "
           f"{problem.observation.node_count} matched nodes")
     print("| quantity | seconds | ratio |")
     print("|---|---|---|")

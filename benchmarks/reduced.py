@@ -59,14 +59,15 @@ def costs(size: float) -> None:
         problem = InverseProblem(load_scene(source, [f"target={{surfaces={{{table}}}}}"]))
     theta = np.array([40.0])
     model = problem.model
-    model.terms  # assembled once per mesh: not part of the factorization
+    model.stiffness.terms  # assembled once per mesh: not part of the factorization
     start = time.perf_counter()
     factor = model.factorize(problem.forward.coefficients(theta)[0], problem.forward.clamped_boundary)
     factor_time = time.perf_counter() - start
-    b, x = model.function("b"), model.function("x")
+    b, x = model.dofs.function("b"), model.dofs.function("x")
     b.x.array[:] = 1.0
     solve = best_of(lambda: factor.solve(b.x.petsc_vec, x.x.petsc_vec))
-    print(f"phantom P2: {model.num_dofs} dofs, {problem.force_dofs} force dofs, {problem.observation.node_count} matched nodes; "
+    print(f"phantom P2: {model.dofs.num_dofs} dofs, {problem.force_dofs} force dofs, "
+          f"{problem.observation.node_count} matched nodes; "
           f"factorization {factor_time:.2f} s, back-solve {solve:.4f} s")
     print("| rank r | response J (block solve) s | r back-solves in a loop s | loop / block |")
     print("|---|---|---|---|")

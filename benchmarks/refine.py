@@ -12,7 +12,7 @@ import time
 
 import numpy as np
 
-from fenics_elasto.model.elasticity import ElasticModel
+from fenics_elasto.model.dofs import DofLayout
 from fenics_elasto.mesh.builtin import build_scene
 from fenics_elasto.model.refine import refine_scene, transfer_bases
 from fenics_elasto.model.scene import load_scene
@@ -35,11 +35,11 @@ def main():
         problem = build_scene("prostate-phantom", f"{out}/coarse", size=size)
         refined, t_refine = timed(lambda: refine_scene(problem, f"{out}/fine"))
         (coarse, fine), t_load = timed(lambda: (load_scene(problem), load_scene(refined)))
-        nodes = ElasticModel(coarse).node_set(coarse.loaded, coarse.fixed)
+        nodes = DofLayout(coarse).node_set(coarse.loaded, coarse.fixed)
         W = np.linalg.qr(np.random.default_rng(0).normal(size=(nodes.total * coarse.gdim, args.rank)))[0]
         W_fine, t_transfer = timed(lambda: transfer_bases(W, coarse, fine))
         cells = [s.mesh.topology.index_map(3).size_global for s in (coarse, fine)]
-        dofs = [ElasticModel(s).num_dofs for s in (coarse, fine)]
+        dofs = [DofLayout(s).num_dofs for s in (coarse, fine)]
         print(f"{size:5.2f} {cells[0]:>6} -> {cells[1]:>6} {dofs[0]:>7} -> {dofs[1]:>7} {W.shape[0]:>5} -> {W_fine.shape[0]:>5} "
               f"{t_refine:6.2f}s {t_load:5.2f}s {t_transfer:8.2f}s")
 

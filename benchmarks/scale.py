@@ -53,12 +53,12 @@ def child(problem: str, method: str, analysis_only: bool) -> dict:
     clock = time.perf_counter()
     scene = load_scene(problem, command="simulate")
     model = ElasticModel(scene, SolverSettings(method=method))
-    model.terms
+    model.stiffness.terms
     comm.barrier()
-    row = {"dofs": model.num_dofs, "ranks": comm.size, "method": method, "load + matrices s": time.perf_counter() - clock}
+    row = {"dofs": model.dofs.num_dofs, "ranks": comm.size, "method": method, "load + matrices s": time.perf_counter() - clock}
     E, nu = material_values(scene)
-    c = model.coefficients(E, nu)
-    clamped = model.clamped_dofs(scene.fixed + list(scene.displacement))
+    c = model.stiffness.coefficients(E, nu)
+    clamped = model.dofs.clamped_dofs(scene.fixed + list(scene.displacement))
     if analysis_only:
         row.update(mumps_estimates(model, c, clamped))
     else:
@@ -81,7 +81,7 @@ def child(problem: str, method: str, analysis_only: bool) -> dict:
 
 def mumps_estimates(model, c, clamped) -> dict:
     """MUMPS's analysis of K: estimated factorization memory and flops (no numeric phase)."""
-    K = model.constrained_stiffness(c, clamped)
+    K = model.stiffness.constrained(c, clamped)
     clock = time.perf_counter()
     analysis = mumps_analysis(K)
     out = {"analysis s": time.perf_counter() - clock, "est. factor GB": analysis["total MB"] / 1024,

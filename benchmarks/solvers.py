@@ -28,6 +28,7 @@ import fenics_elasto  # noqa: F401  (imports dolfinx_solver before petsc4py)
 from petsc4py import PETSc
 
 from fenics_elasto.model.elasticity import ElasticModel
+from fenics_elasto.model.loads import boundary_load
 from fenics_elasto.util.logs import quiet
 from fenics_elasto.mesh.builtin import build_scene
 from fenics_elasto.model.scene import load_scene
@@ -44,25 +45,25 @@ class Case:
     def __init__(self, problem):
         self.scene = load_scene(problem, command="simulate")
         self.model = ElasticModel(self.scene, SolverSettings(method="direct"))
-        self.model.terms
+        self.model.stiffness.terms
         E, nu = material_values(self.scene)
         prostate = np.array([m.name == "prostate" for m in self.scene.materials])
-        self.c = self.model.coefficients(E, nu)
-        self.c_near = self.model.coefficients(E * np.where(prostate, 1.01, 1.0), nu)
-        self.clamped = self.model.clamped_dofs(self.scene.fixed)
-        self.b = self.model.boundary_load({}, {"bladder": 1.0})
+        self.c = self.model.stiffness.coefficients(E, nu)
+        self.c_near = self.model.stiffness.coefficients(E * np.where(prostate, 1.01, 1.0), nu)
+        self.clamped = self.model.dofs.clamped_dofs(self.scene.fixed)
+        self.b = boundary_load(self.model.dofs, {}, {"bladder": 1.0})
         self.b.array[self.clamped] = 0.0
-        self.modes = rigid_body_modes(self.model.dof_coords[: self.model.n_owned_blocks], self.model.comm)
+        self.modes = rigid_body_modes(self.model.dofs.dof_coords[: self.model.dofs.n_owned_blocks], self.model.dofs.comm)
 
     def K(self, c=None):
-        return self.model.constrained_stiffness(self.c if c is None else c, self.clamped)
+        return self.model.stiffness.constrained(self.c if c is None else c, self.clamped)
 
     def direct(self, **settings):
         return DirectSolver(self.K(), self.clamped, SolverSettings(method="direct", **settings), SolverStats("direct"))
 
     def iterative(self, **settings):
         return IterativeSolver(self.K(), self.clamped, SolverSettings(method="iterative", **settings),
-                               SolverStats("iterative"), self.modes, WarmStart(self.model.comm))
+                               SolverStats("iterative"), self.modes, WarmStart(self.model.dofs.comm))
 
     def solve(self, solver):
         x = self.b.duplicate()
@@ -102,7 +103,7 @@ def reuse_rows(case, repeat):
             clock = time.perf_counter()
             solver = case.direct(factor=factor)
             first.append(time.perf_counter() - clock)
-            case.model.constrained_stiffness(case.c_near, case.clamped, out=solver.K)
+            case.model.stiffness.constrained(case.c_near, case.clamped, out=solver.K)
             clock = time.perf_counter()
             solver.refresh()
             refactor.append(time.perf_counter() - clock)
@@ -111,7 +112,7 @@ def reuse_rows(case, repeat):
             memory = F.getMumpsInfog(22)
             solver.destroy()
         s1, n1 = event_time(symbolic), event_time(numeric)
-        rows.append({"DOFs": case.model.num_dofs, "factor": factor,
+        rows.append({"DOFs": case.model.dofs.num_dofs, "factor": factor,
                      "first (analysis + numeric) s": statistics.median(first),
                      "refactor (numeric only) s": statistics.median(refactor),
                      "analysis s (event log)": (s1[0] - s0[0]) / max(s1[1] - s0[1], 1),
@@ -134,7 +135,7 @@ def blr_rows(case, repeat):
         solver.K.mult(raw, residual)
         residual.aypx(-1.0, case.b)
         x, solve_time = case.solve(solver)
-        rows.append({"DOFs": case.model.num_dofs, "blr": blr, "factorization s": factor_time,
+        rows.append({"DOFs": case.model.dofs.num_dofs, "blr": blr, "factorization s": factor_time,
                      "factor entries (M)": F.getMumpsInfog(35 if blr else 29) / 1e6,
                      "MUMPS memory MB": F.getMumpsInfog(22),
                      "residual of the factor alone": residual.norm() / case.b.norm(),
@@ -154,14 +155,14 @@ def iterative_rows(case, repeat):
         x, t = case.solve(solver)
         solves.append(t)
         cold_its.append(solver.stats.iterations)
-        case.model.constrained_stiffness(case.c_near, case.clamped, out=solver.K)
+        case.model.stiffness.constrained(case.c_near, case.clamped, out=solver.K)
         clock = time.perf_counter()
         solver.refresh()
         refreshes.append(time.perf_counter() - clock)
         warm_solves.append(case.solve(solver)[1])
         warm_its.append(solver.stats.iterations - cold_its[-1])
         solver.destroy()
-    return [{"DOFs": case.model.num_dofs, "GAMG setup s": statistics.median(setups),
+    return [{"DOFs": case.model.dofs.num_dofs, "GAMG setup s": statistics.median(setups),
              "refresh (new material) s": statistics.median(refreshes), "CG its": cold_its[0],
              "solve s": statistics.median(solves), "warm CG its (1 % change)": warm_its[0],
              "warm solve s": statistics.median(warm_solves),
@@ -196,7 +197,7 @@ def gamg_rows(case, repeat):
             its = f"failed: {err}"
         for key in options:
             db.delValue("elasto_" + key)
-        rows.append({"DOFs": case.model.num_dofs, "GAMG variant": name, "CG its": its,
+        rows.append({"DOFs": case.model.dofs.num_dofs, "GAMG variant": name, "CG its": its,
                      "setup s": statistics.median(setups) if setups else "-",
                      "solve s": statistics.median(solves) if solves else "-"})
     return rows
@@ -207,7 +208,7 @@ def rtol_rows(case, repeat):
     for rtol in (1e-6, 1e-8, 1e-10):
         solver = case.iterative(rtol=rtol)
         x, t = case.solve(solver)
-        rows.append({"DOFs": case.model.num_dofs, "rtol": rtol, "CG its": solver.stats.iterations, "solve s": t,
+        rows.append({"DOFs": case.model.dofs.num_dofs, "rtol": rtol, "CG its": solver.stats.iterations, "solve s": t,
                      "field error vs direct": (x - reference).norm() / reference.norm()})
         solver.destroy()
     return rows

@@ -61,7 +61,7 @@ def main():
         grid = np.linspace(0.02, 0.495, 40)
         curves[nu] = (grid, profile(problem, grid), found)
 
-    print(f"letter A, P{args.degree}, source h = 0.4 ({problem.model.num_dofs} dofs, {problem.force_dofs} force dofs), "
+    print(f"letter A, P{args.degree}, source h = 0.4 ({problem.model.dofs.num_dofs} dofs, {problem.force_dofs} force dofs), "
           "target h = 0.2, outline only")
     print("| true nu | recovered | error % | time s | outer it. | inner it. | factorizations |")
     print("|---|---|---|---|---|---|---|")

@@ -9,6 +9,7 @@ import dolfinx
 from dolfinx import fem
 
 from fenics_elasto.model.elasticity import ElasticModel
+from fenics_elasto.model.loads import assemble_load
 from fenics_elasto.mesh.gmsh_models import GmshModel
 from fenics_elasto.mesh.builtin import build_cantilever
 from fenics_elasto.model.scene import load_scene
@@ -46,15 +47,15 @@ def cantilever_errors(problem, degree):
     tags = dolfinx.mesh.meshtags(mesh, 1, np.sort(tip), np.ones(len(tip), np.int32))
     ds = ufl.Measure("ds", domain=mesh, subdomain_data=tags)
     traction = ufl.as_vector([0.0, P / (2 * inertia) * (C**2 - x[1] ** 2)])
-    rhs = model.assemble_load(ufl.inner(traction, ufl.TestFunction(model.V)) * ds(1))
-    exact = model.function("exact")
+    rhs = assemble_load(ufl.inner(traction, ufl.TestFunction(model.dofs.V)) * ds(1))
+    exact = model.dofs.function("exact")
     exact.interpolate(lambda p: np.stack(timoshenko(p[0], p[1])))
-    clamped = model.clamped_dofs(["support"])
-    u = model.solve(model.coefficients(*material_values(scene)), clamped, rhs, prescribed=exact)
+    clamped = model.dofs.clamped_dofs(["support"])
+    u = model.solve(model.stiffness.coefficients(*material_values(scene)), clamped, rhs, prescribed=exact)
     ux, uy = timoshenko(x[0], x[1])
     diff = u - ufl.as_vector([ux, uy])
     err = np.sqrt(mesh.comm.allreduce(fem.assemble_scalar(fem.form(ufl.inner(diff, diff) * ufl.dx)), op=MPI.SUM))
-    tip_node = np.argmin(np.linalg.norm(model.dof_coords, axis=1))
+    tip_node = np.argmin(np.linalg.norm(model.dofs.dof_coords, axis=1))
     tip_deflection = u.x.array.reshape(-1, 2)[tip_node, 1]
     cells = mesh.comm.allreduce(mesh.topology.index_map(2).size_local)
     return err, tip_deflection, np.sqrt(2 * L * C / cells)
@@ -81,7 +82,7 @@ def test_patch_linear_field_reproduced(scenes, degree):
     scene = load_scene(scenes["letter-a"], [f"degree={degree}", "boundary.fixed=[]", "boundary.loaded=[]",
                                             f"boundary.displacement.outline={{value=[0.1, -0.2], gradient={gradient}}}"])
     sim = simulate(scene)
-    coords = sim.model.dof_coords
+    coords = sim.model.dofs.dof_coords
     expected = np.array([0.1, -0.2]) + coords @ np.array(gradient).T
     assert np.abs(sim.u.x.array.reshape(-1, 2) - expected).max() < 1e-12
 
@@ -128,9 +129,10 @@ def test_lame_sphere_internal_pressure(tmp_path):
         tags = dolfinx.mesh.meshtags(mesh, 2, np.sort(inner), np.ones(len(inner), np.int32))
         ds = ufl.Measure("ds", domain=mesh, subdomain_data=tags)
         n = ufl.FacetNormal(mesh)
-        rhs = model.assemble_load(-p * ufl.inner(n, ufl.TestFunction(model.V)) * ds(1))
-        clamped = model.clamped_dofs(["outer"])
-        u = model.solve(model.coefficients(*material_values(scene)), clamped, rhs, prescribed_function(model, scene.displacement))
+        rhs = assemble_load(-p * ufl.inner(n, ufl.TestFunction(model.dofs.V)) * ds(1))
+        clamped = model.dofs.clamped_dofs(["outer"])
+        c = model.stiffness.coefficients(*material_values(scene))
+        u = model.solve(c, clamped, rhs, prescribed_function(model, scene.displacement))
         x = ufl.SpatialCoordinate(mesh)
         r = ufl.sqrt(ufl.dot(x, x))
         diff = u - u_r(r) * x / r

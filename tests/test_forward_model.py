@@ -11,8 +11,11 @@ import dolfinx.fem.petsc
 from dolfinx import fem
 
 from conftest import run_mpi_script
-import fenics_elasto.model.elasticity as elasticity
-from fenics_elasto.model.elasticity import ElasticModel, lame, lame_jacobian, stiffness_quadrature
+import fenics_elasto.model.stiffness as stiffness
+from fenics_elasto.model.dofs import DofLayout
+from fenics_elasto.model.elasticity import ElasticModel
+from fenics_elasto.model.materials import lame, lame_jacobian
+from fenics_elasto.model.stiffness import stiffness_quadrature
 from fenics_elasto.util.errors import UserError
 from fenics_elasto.model.scene import load_scene, reconfigure
 from fenics_elasto.model.simulate import material_values, simulate
@@ -34,13 +37,13 @@ def test_linear_combination_equals_direct_assembly(phantom):
         cells = scene.cell_tags.find(material.tag)
         mu_f.x.array[Q.dofmap.list[cells, 0]] = mu[m]
         lam_f.x.array[Q.dofmap.list[cells, 0]] = lam[m]
-    u, v = ufl.TrialFunction(model.V), ufl.TestFunction(model.V)
+    u, v = ufl.TrialFunction(model.dofs.V), ufl.TestFunction(model.dofs.V)
     eps = lambda w: ufl.sym(ufl.grad(w))  # noqa: E731
-    dx = ufl.dx(metadata=stiffness_quadrature(model.V))
+    dx = ufl.dx(metadata=stiffness_quadrature(model.dofs.V))
     direct = dolfinx.fem.petsc.assemble_matrix(
         fem.form(2 * mu_f * ufl.inner(eps(u), eps(v)) * dx + lam_f * ufl.div(u) * ufl.div(v) * dx))
     direct.assemble()
-    combined = model.stiffness(model.coefficients(E, nu))
+    combined = model.stiffness.matrix(model.stiffness.coefficients(E, nu))
     combined.axpy(-1.0, direct)
     assert combined.norm() / direct.norm() < 1e-12
 
@@ -52,17 +55,17 @@ def test_a_small_region_derivative_runs_over_its_own_entries(phantom):
     scene, model = phantom
     names = [m.name for m in scene.materials]
     small = [names.index("prostate")]
-    compact = model.compact_terms
+    compact = model.stiffness.compact_terms
     assert [j for j, C in enumerate(compact) if C is not None] == [2 * m + k for m in small for k in (0, 1)]
-    full = sum(M.getInfo()["nz_used"] for M in model.terms[2 * small[0]:2 * small[0] + 2])
+    full = sum(M.getInfo()["nz_used"] for M in model.stiffness.terms[2 * small[0]:2 * small[0] + 2])
     kept = sum(compact[j].getInfo()["nz_used"] for j in (2 * small[0], 2 * small[0] + 1))
     assert kept < 0.5 * full
     E, nu = np.array([10.0, 37.0]), np.array([0.45, 0.3])
-    x, y, z = model.function(), model.function(), model.function()
+    x, y, z = model.dofs.function(), model.dofs.function(), model.dofs.function()
     x.x.array[:] = np.random.default_rng(0).standard_normal(len(x.x.array))
-    for c in (model.coefficient_derivatives(E, nu)[0][small[0]], model.coefficients(E, nu)):
-        model.apply_stiffness(c, x.x.petsc_vec, y.x.petsc_vec)
-        summed = model.stiffness(c)
+    for c in (model.stiffness.coefficient_derivatives(E, nu)[0][small[0]], model.stiffness.coefficients(E, nu)):
+        model.stiffness.apply(c, x.x.petsc_vec, y.x.petsc_vec)
+        summed = model.stiffness.matrix(c)
         summed.mult(x.x.petsc_vec, z.x.petsc_vec)
         summed.destroy()
         assert np.linalg.norm(y.x.array - z.x.array) <= 1e-13 * np.linalg.norm(z.x.array)
@@ -72,11 +75,11 @@ def _patch_residual(scene, model) -> np.ndarray:
     """|K u| per node for an affine u, one material everywhere: zero at every node off
     the boundary when the quadrature integrates a constant stress's equilibrium exactly."""
     A = np.array([[0.03, -0.02, 0.01], [0.015, -0.04, 0.02], [-0.01, 0.025, 0.05]])
-    u, r = model.function(), model.function()
-    u.x.array[:] = (model.dof_coords @ A.T).ravel()
+    u, r = model.dofs.function(), model.dofs.function()
+    u.x.array[:] = (model.dofs.dof_coords @ A.T).ravel()
     one = np.ones(len(scene.materials))
-    model.apply_stiffness(model.coefficients(10 * one, 0.4 * one), u.x.petsc_vec, r.x.petsc_vec)
-    return np.abs(r.x.array.reshape(-1, 3)[: model.n_owned_blocks]).max(axis=1)
+    model.stiffness.apply(model.stiffness.coefficients(10 * one, 0.4 * one), u.x.petsc_vec, r.x.petsc_vec)
+    return np.abs(r.x.array.reshape(-1, 3)[: model.dofs.n_owned_blocks]).max(axis=1)
 
 
 def _folded_cells(scene) -> int:
@@ -96,13 +99,13 @@ def test_curved_cells_pass_the_patch_test(scenes, monkeypatch):
     scene = load_scene(scenes["prostate-phantom"])
     assert _folded_cells(scene) == 0
     model = ElasticModel(scene)
-    assert stiffness_quadrature(model.V) == {"quadrature_degree": 3}
-    boundary = model.boundary_blocks(list(scene.facet_groups))
-    interior = np.setdiff1d(np.arange(model.n_owned_blocks), boundary)
+    assert stiffness_quadrature(model.dofs.V) == {"quadrature_degree": 3}
+    boundary = model.dofs.boundary_blocks(list(scene.facet_groups))
+    interior = np.setdiff1d(np.arange(model.dofs.n_owned_blocks), boundary)
     residual = _patch_residual(scene, model)
     scale = residual[boundary].max()
     assert residual[interior].max() < 1e-12 * scale
-    monkeypatch.setattr(elasticity, "stiffness_quadrature", lambda V: {"quadrature_degree": 2})
+    monkeypatch.setattr(stiffness, "stiffness_quadrature", lambda V: {"quadrature_degree": 2})
     loose = _patch_residual(scene, ElasticModel(scene))[interior]
     assert (loose > 1e-6 * scale).sum() > 100
 
@@ -159,9 +162,9 @@ def test_curved_surfaces_lie_on_the_organs(scenes, phantom):
 
     curved_scene = load_scene(scenes["prostate-phantom"])
     facets = curved_scene.facet_groups["prostate_surface"]
-    curved = surface(ElasticModel(curved_scene).function("zero"), facets, deformed=False)
+    curved = surface(DofLayout(curved_scene).function("zero"), facets, deformed=False)
     flat_scene, flat_model = phantom  # degree 1: no midpoint values, corners only
-    flat = surface(flat_model.function("zero"), flat_scene.facet_groups["prostate_surface"], deformed=False)
+    flat = surface(flat_model.dofs.function("zero"), flat_scene.facet_groups["prostate_surface"], deformed=False)
     assert curved.n_cells == 16 * len(facets) and flat.n_cells == len(facets)
     assert np.abs(depth(np.asarray(curved.points))).max() < 2e-3
     assert centroid_depth(curved).max() < 0.2 * centroid_depth(flat).max()
@@ -170,15 +173,15 @@ def test_curved_surfaces_lie_on_the_organs(scenes, phantom):
 def test_factorization_is_cached_and_counted(phantom):
     scene, model = phantom
     E, nu = material_values(scene)
-    clamped = model.clamped_dofs(scene.fixed)
+    clamped = model.dofs.clamped_dofs(scene.fixed)
     before = model.factorizations
-    rhs = model.function("f")
+    rhs = model.dofs.function("f")
     rhs.x.array[:] = 1.0
-    u1 = model.solve(model.coefficients(E, nu), clamped, rhs.x.petsc_vec).x.array.copy()
-    u2 = model.solve(model.coefficients(E, nu), clamped, rhs.x.petsc_vec).x.array.copy()
+    u1 = model.solve(model.stiffness.coefficients(E, nu), clamped, rhs.x.petsc_vec).x.array.copy()
+    u2 = model.solve(model.stiffness.coefficients(E, nu), clamped, rhs.x.petsc_vec).x.array.copy()
     assert model.factorizations == before + 1
     assert np.array_equal(u1, u2)
-    model.solve(model.coefficients(E * 2, nu), clamped, rhs.x.petsc_vec)
+    model.solve(model.stiffness.coefficients(E * 2, nu), clamped, rhs.x.petsc_vec)
     assert model.factorizations == before + 2
 
 

@@ -10,6 +10,7 @@ import pytest
 
 from conftest import run_cli, run_mpi_script
 from fenics_elasto.app.cli import main
+from fenics_elasto.model.dofs import DofLayout
 from fenics_elasto.model.elasticity import ElasticModel
 from fenics_elasto.util.errors import UserError
 from fenics_elasto.inverse.estimator import estimate
@@ -40,8 +41,8 @@ def test_landmarks_anywhere_interpolate_affine_fields_exactly(scenes):
     equals their values there. (A quadratic field is not exact in a curved cell.)"""
     scene = load_scene(scenes["prostate-phantom"])
     model = ElasticModel(scene)
-    u = model.function()
-    x = model.V.tabulate_dof_coordinates()
+    u = model.dofs.function()
+    x = model.dofs.V.tabulate_dof_coordinates()
 
     def field(p):
         return np.stack([0.1 * p[:, 1] - 0.2 * p[:, 2], -0.05 * p[:, 0] + 0.01, 0.02 + 0.3 * p[:, 0]], axis=1)
@@ -52,7 +53,7 @@ def test_landmarks_anywhere_interpolate_affine_fields_exactly(scenes):
     points = points[np.linalg.norm((points - [0.0, -0.3, 2.6]) / [2.3, 1.9, 1.5], axis=1) > 1.1]
     assert np.abs(probe(u, points) - field(points)).max() < 1e-10
     with pytest.raises(UserError, match="outside the body"):
-        PointProbe(model.V, np.array([[0.0, 0.0, 50.0]]), tolerance=0.1)
+        PointProbe(model.dofs.V, np.array([[0.0, 0.0, 50.0]]), tolerance=0.1)
 
 
 def test_surfaces_plus_interior_landmarks(tmp_path):
@@ -110,7 +111,7 @@ def test_full_force_space_on_surfaces_is_refused_before_any_solve(scenes, tmp_pa
     from fenics_elasto.files.writers import write_matched_surfaces
 
     scene = load_scene(scenes["prostate-phantom"])
-    write_matched_surfaces(tmp_path / "still", scene, ElasticModel(scene).function())  # the undeformed organs
+    write_matched_surfaces(tmp_path / "still", scene, DofLayout(scene).function())  # the undeformed organs
     table = ", ".join(f"{g}='{tmp_path / 'still' / f'surface_{g}.vtp'}'" for g in ("bladder", "prostate_surface", "rectum"))
     proc = run_cli("estimate", scenes["prostate-phantom"], "--out", tmp_path / "out", "--set", f"target.surfaces={{{table}}}",
                    timeout=120)

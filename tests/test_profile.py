@@ -9,6 +9,7 @@ from fenics_elasto.inverse.estimator import Estimator, Options, estimate
 from fenics_elasto.inverse.profile import bracketed_minimum, cubic_minimizer
 from fenics_elasto.inverse.objective import InverseProblem
 from fenics_elasto.inverse.uncertainty.posterior import laplace
+from fenics_elasto.model.dofs import DofLayout
 from fenics_elasto.model.scene import load_scene
 from fenics_elasto.inverse.verification import taylor_test
 from independent import noisy_copy
@@ -369,12 +370,11 @@ def test_rough_organ_targets_are_smoothed_and_outlines_are_not(scenes, letter, t
     """[target] smooth = "auto": the phantom's organ surfaces with noise of 0.3 edge
     lengths are smoothed (and say so, with the noise found before and after), clean ones
     are not; the letter's noisy 2D outline is not (its corners would round off)."""
-    from fenics_elasto.model.elasticity import ElasticModel
     from fenics_elasto.files.writers import write_matched_surfaces
     from fenics_elasto.files.readers import read_surface
 
     phantom = load_scene(scenes["prostate-phantom"])
-    write_matched_surfaces(tmp_path / "clean", phantom, ElasticModel(phantom).function(), pieces=4)
+    write_matched_surfaces(tmp_path / "clean", phantom, DofLayout(phantom).function(), pieces=4)
     clean = {g: tmp_path / "clean" / f"surface_{g}.vtp" for g in phantom.matched}
     std = 0.3 * min(read_surface(p, 3).mean_edge for p in clean.values())
     noisy = {g: noisy_copy(p, tmp_path / f"noisy_{g}.vtp", std, np.random.default_rng(5)) for g, p in clean.items()}

@@ -20,6 +20,7 @@ from dolfinx import fem
 
 from conftest import run_mpi_script
 from fenics_elasto.app.cli import main
+from fenics_elasto.model.dofs import DofLayout
 from fenics_elasto.model.elasticity import ElasticModel
 from fenics_elasto.util.errors import UserError
 from fenics_elasto.mesh.gmsh_models import GmshModel
@@ -133,7 +134,7 @@ def test_fine_nodes_are_the_coarse_order4_lattice(pair, name):
 
 
 def _loaded(scene):
-    nodes = ElasticModel(scene).node_set(scene.loaded, scene.fixed)
+    nodes = DofLayout(scene).node_set(scene.loaded, scene.fixed)
     return nodes, nodes.gather(nodes.coords)
 
 
@@ -150,11 +151,11 @@ def _evaluate(scene, u, points):
 def _random_coarse_field(scene, seed=1):
     """A random field of the coarse space, zero on the clamped nodes, and its loaded-node rows."""
     model = ElasticModel(scene)
-    u = model.function()
+    u = model.dofs.function()
     u.x.array[:] = np.random.default_rng(seed).normal(size=u.x.array.size)
-    u.x.array[model.clamped_dofs(scene.fixed)] = 0.0
+    u.x.array[model.dofs.clamped_dofs(scene.fixed)] = 0.0
     nodes, _ = _loaded(scene)
-    return u, nodes.gather(u.x.array.reshape(-1, model.bs)[nodes.blocks])
+    return u, nodes.gather(u.x.array.reshape(-1, model.dofs.bs)[nodes.blocks])
 
 
 def _affine(x):
@@ -269,7 +270,7 @@ def test_simulate_runs_on_the_refined_problem(pair, tmp_path):
     coarse, fine = pair("inclusion")
     assert main(["simulate", str(fine.path), "--out", str(tmp_path / "fine")]) == 0
     result = json.loads((tmp_path / "fine" / "result.json").read_text())
-    assert result["dofs"] == ElasticModel(fine).num_dofs > 3.5 * ElasticModel(coarse).num_dofs
+    assert result["dofs"] == DofLayout(fine).num_dofs > 3.5 * DofLayout(coarse).num_dofs
     assert abs(result["max_displacement"] / simulate(coarse).result["max_displacement"] - 1) < 1e-2
 
 

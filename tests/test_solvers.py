@@ -12,6 +12,7 @@ from petsc4py import PETSc
 from conftest import run_cli, run_mpi_script
 from targets import letter_case
 from fenics_elasto.model.elasticity import ElasticModel
+from fenics_elasto.model.loads import boundary_load
 from fenics_elasto.model.forward import BoundaryForward
 from fenics_elasto.model.scene import load_scene
 from fenics_elasto.model.simulate import material_values, simulate
@@ -69,13 +70,13 @@ def test_iterative_equals_direct_p2(scenes):
 
 
 def _solve_at(model, scene, E, rhs):
-    clamped = model.clamped_dofs(scene.fixed)
+    clamped = model.dofs.clamped_dofs(scene.fixed)
     _, nu = material_values(scene)
-    return model.solve(model.coefficients(E, nu), clamped, rhs.x.petsc_vec).x.array.copy()
+    return model.solve(model.stiffness.coefficients(E, nu), clamped, rhs.x.petsc_vec).x.array.copy()
 
 
 def _load(model, seed=0):
-    rhs = model.function("f")
+    rhs = model.dofs.function("f")
     rhs.x.array[:] = np.random.default_rng(seed).standard_normal(len(rhs.x.array))
     return rhs
 
@@ -109,12 +110,12 @@ def test_a_nearby_material_value_borrows_the_factors(phantom_p1):
     (simulate's) runs CG on the factors already made -- no factorization -- and equals a
     fresh direct solve to rtol; a value beyond that ratio factorizes."""
     model = ElasticModel(phantom_p1, SolverSettings(method="direct"))
-    clamped = model.clamped_dofs(phantom_p1.fixed)
+    clamped = model.dofs.clamped_dofs(phantom_p1.fixed)
     load = _load(model)  # kept alive: its petsc_vec borrows the Function's memory
     E, nu = material_values(phantom_p1)
 
     def solve(m, scale, nearby=True):
-        c = m.coefficients(E * np.r_[scale, np.ones(len(E) - 1)], nu)
+        c = m.stiffness.coefficients(E * np.r_[scale, np.ones(len(E) - 1)], nu)
         return m.solve(c, clamped, load.x.petsc_vec, nearby=nearby)
 
     solve(model, 1.0)
@@ -126,8 +127,8 @@ def test_a_nearby_material_value_borrows_the_factors(phantom_p1):
     assert relative(near, exact) < 1e-7
     # a looser rtol (a diagnostic's) stops CG earlier, still near the answer
     steps = model.stats.iterations
-    c = model.coefficients(E * np.r_[2.5, np.ones(len(E) - 1)], nu)
-    loose, b = model.function(), load.x.petsc_vec.copy()
+    c = model.stiffness.coefficients(E * np.r_[2.5, np.ones(len(E) - 1)], nu)
+    loose, b = model.dofs.function(), load.x.petsc_vec.copy()
     b.array[clamped] = 0.0  # as ElasticModel.solve's
     with model.solver(c, clamped, nearby=True, rtol=1e-4) as borrowed:
         borrowed.solve(b, loose.x.petsc_vec)
@@ -157,19 +158,19 @@ def test_blr_is_refined_to_the_tolerance(scenes):
 def test_warm_start_saves_iterations(phantom_p1):
     """CG starts from the Galerkin projection onto the last solutions (a pressure load)."""
     model = ElasticModel(phantom_p1, SolverSettings(method="iterative"))
-    clamped = model.clamped_dofs(phantom_p1.fixed)
+    clamped = model.dofs.clamped_dofs(phantom_p1.fixed)
     E, nu = material_values(phantom_p1)
-    load = model.boundary_load({}, {"bladder": 1.0})
-    model.solve(model.coefficients(E, nu), clamped, load)
+    load = boundary_load(model.dofs, {}, {"bladder": 1.0})
+    model.solve(model.stiffness.coefficients(E, nu), clamped, load)
     cold = model.stats.iterations
-    model.solve(model.coefficients(2 * E, nu), clamped, load)  # every E doubled: u / 2, in the span
+    model.solve(model.stiffness.coefficients(2 * E, nu), clamped, load)  # every E doubled: u / 2, in the span
     assert model.stats.iterations == cold
     stiffer = E * np.where([m.name == "prostate" for m in phantom_p1.materials], 1.01, 1.0)
-    u = model.solve(model.coefficients(stiffer, nu), clamped, load).x.array  # 1 % off the last one
+    u = model.solve(model.stiffness.coefficients(stiffer, nu), clamped, load).x.array  # 1 % off the last one
     warm = model.stats.iterations - cold
     assert 0 < warm <= 0.75 * cold
     fresh = ElasticModel(phantom_p1, SolverSettings(method="iterative"))
-    assert relative(u, fresh.solve(fresh.coefficients(stiffer, nu), clamped, load).x.array) < 1e-6
+    assert relative(u, fresh.solve(fresh.stiffness.coefficients(stiffer, nu), clamped, load).x.array) < 1e-6
     assert fresh.stats.iterations >= cold - 1  # the same kind of system from scratch
 
 
@@ -216,14 +217,14 @@ def test_singular_stiffness_is_refused(cantilever):
     rhs = _load(model)
     _, nu = material_values(cantilever)
     with pytest.raises(SolverError, match="singular"):
-        model.solve(model.coefficients([1000.0], nu), np.zeros(0, np.int32), rhs.x.petsc_vec)
+        model.solve(model.stiffness.coefficients([1000.0], nu), np.zeros(0, np.int32), rhs.x.petsc_vec)
 
 
 def test_nan_load_is_refused(cantilever):
     for method in ("direct", "iterative"):
         model = ElasticModel(cantilever, SolverSettings(method=method))
         rhs = _load(model)
-        rhs.x.array[np.setdiff1d(np.arange(10), model.clamped_dofs(cantilever.fixed))[0]] = np.nan
+        rhs.x.array[np.setdiff1d(np.arange(10), model.dofs.clamped_dofs(cantilever.fixed))[0]] = np.nan
         with pytest.raises(SolverError, match="right-hand side is not finite"):
             _solve_at(model, cantilever, np.array([1000.0]), rhs)
 
@@ -256,7 +257,7 @@ def test_factors_too_big_for_the_machine_are_refused_before_factorizing(cantilev
 
     model = ElasticModel(cantilever, SolverSettings(method="direct"))
     _, nu = material_values(cantilever)
-    K = model.constrained_stiffness(model.coefficients([1000.0], nu), model.clamped_dofs(cantilever.fixed))
+    K = model.stiffness.constrained(model.stiffness.coefficients([1000.0], nu), model.dofs.clamped_dofs(cantilever.fixed))
     need = solvers.factor_memory(K, "lu")
     assert 1e5 < need < 1e9  # a few thousand DOFs: MBs, not GBs
     monkeypatch.setattr(solvers, "MEMORY_CHECK_DOFS", 0)

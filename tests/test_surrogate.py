@@ -34,7 +34,7 @@ def relative_error(J, truth):
 
 def energy_norm(problem, theta, X):
     """sqrt(trace X^T K(theta) X) of owned-row columns X (serial)."""
-    K = problem.model.stiffness(problem.forward.coefficients(theta)[0])
+    K = problem.model.stiffness.matrix(problem.forward.coefficients(theta)[0])
     return float(np.sqrt(sum(K.getValues(range(len(X)), range(len(X))) @ x @ x for x in X.T)))
 
 
@@ -198,14 +198,14 @@ def test_affine_pieces_sum_to_the_stiffness(inclusion):
     E alone (one piece), the matrix's do not (two): K(theta) = sum_g s_g M_g anywhere."""
     problem, W = inclusion
     surrogate = MaterialSurrogate(problem, W)
-    assert len(surrogate.terms) == 3 and len(problem.model.terms) == 4
+    assert len(surrogate.terms) == 3 and len(problem.model.stiffness.terms) == 4
     theta = at(problem, 7.0, 0.41)
     Y = np.random.default_rng(3).standard_normal((len(surrogate.G), 2))
     s, ds = surrogate._coefficients(theta)
     c, dc = problem.forward.coefficients(theta)
     for pieces, terms in ((s, c), *zip(ds, dc)):  # K and its derivatives
-        ours = sum(si * problem.model.multiply(M, Y) for si, M in zip(pieces, surrogate.terms))
-        full = sum(cj * problem.model.multiply(M, Y) for cj, M in zip(terms, problem.model.terms))
+        ours = sum(si * problem.model.dofs.multiply(M, Y) for si, M in zip(pieces, surrogate.terms))
+        full = sum(cj * problem.model.dofs.multiply(M, Y) for cj, M in zip(terms, problem.model.stiffness.terms))
         assert np.linalg.norm(ours - full) < 1e-12 * np.linalg.norm(full)
 
 

@@ -79,7 +79,7 @@ def run_estimate(problem_path: Path, out: Path, overrides=(), check_mesh: bool =
         scene = load_scene(problem_path, overrides, command="estimate")
         problem = InverseProblem(scene)
         basis, held_out = reduced_basis(problem)
-        log.info(f"estimate {', '.join(problem.params.labels)}: {problem.model.num_dofs} dofs, {problem.force_dofs} "
+        log.info(f"estimate {', '.join(problem.params.labels)}: {problem.model.dofs.num_dofs} dofs, {problem.force_dofs} "
                  "force dofs" + (f" reduced to rank {basis.shape[1]}" if basis is not None else "")
                  + f", {problem.observation.node_count} matched nodes"
                  + (f", {len(problem.misfit.landmark_rows())} landmarks" if len(problem.misfit.landmark_rows()) else ""))
@@ -114,7 +114,7 @@ def mesh_check(problem_path: Path, out: Path, overrides, result, basis) -> dict:
     W = None if basis is None else transfer_bases(basis, coarse.scene, fine.scene)
     options = Options.from_scene(fine.scene)
     options.scan = 1  # started at the coarse answer: no scan of the bounds
-    log.info(f"mesh check: the estimate again on the source refined once ({fine.model.num_dofs} dofs)")
+    log.info(f"mesh check: the estimate again on the source refined once ({fine.model.dofs.num_dofs} dofs)")
     refined = estimate(fine, options, W)
     change = {label: 100 * (refined.estimated[label] - value) / value for label, value in result.estimated.items()}
     for label, moved in change.items():
@@ -122,7 +122,7 @@ def mesh_check(problem_path: Path, out: Path, overrides, result, basis) -> dict:
             result.record["warnings"].append(f"{label} moved {moved:+.1f} % on the source refined once: the source "
                                              "mesh limits the accuracy; refine it (finer organ walls first)")
             log.warning(result.record["warnings"][-1])
-    return {"refined_dofs": fine.model.num_dofs, "estimated": refined.estimated, "change_percent": change,
+    return {"refined_dofs": fine.model.dofs.num_dofs, "estimated": refined.estimated, "change_percent": change,
             "seconds": round(time.perf_counter() - start, 1)}
 
 

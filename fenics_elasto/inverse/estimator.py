@@ -262,7 +262,7 @@ class Estimator:
         is re-run from the other fits met on the way: minima that far apart in Phi* raise
         the interval's threshold by as much (posterior.jitter_noise)."""
         full_solves = self.surrogate is None
-        if len(self.params) != 1 or (full_solves and (self.problem.model.num_dofs > PROFILE_DOFS
+        if len(self.params) != 1 or (full_solves and (self.problem.model.dofs.num_dofs > PROFILE_DOFS
                                                       or self.inner_name != "gauss-newton")):
             return
         fits = []  # (s, fit): the surrogate's inner optima met along the way, starts for the spread
@@ -612,7 +612,7 @@ def _record(estimator: Estimator, theta, best: InnerResult, phi_undeformed, warn
                        "surrogate_evaluations": estimator.surrogate.evaluations if estimator.surrogate else 0},
         "factorizations": problem.model.factorizations,
         "solves": {"forward": problem.forward.forward_solves, "adjoint": problem.forward.adjoint_solves},
-        "dofs": problem.model.num_dofs,
+        "dofs": problem.model.dofs.num_dofs,
         "force_dofs": problem.force_dofs,
         "rank": None if estimator.basis is None else int(estimator.basis.shape[1]),
         "inner_solver": estimator.inner_name,

@@ -79,7 +79,7 @@ class InverseProblem:
     def _groups_of(self, nodes, groups, vertices_only=False) -> np.ndarray:
         group = np.full(len(nodes), -1)
         for i, name in reversed(list(enumerate(groups))):
-            group[np.isin(nodes.blocks, self.model.boundary_blocks([name], vertices_only))] = i
+            group[np.isin(nodes.blocks, self.model.dofs.boundary_blocks([name], vertices_only))] = i
         return nodes.gather(group)
 
     # --- Phi and its gradients
@@ -106,8 +106,8 @@ class InverseProblem:
         w = self.forward.adjoint(theta, load, boundary)
         if not boundary:  # dPhi/dF = P^T w
             return self.forward.on_loaded(w), w
-        Kw = self.model.function("Kw")  # dPhi/dd = (O^T g)_B - (K w)_B
-        self.model.apply_stiffness(self.forward.coefficients(theta)[0], w.x.petsc_vec, Kw.x.petsc_vec)
+        Kw = self.model.dofs.function("Kw")  # dPhi/dd = (O^T g)_B - (K w)_B
+        self.model.stiffness.apply(self.forward.coefficients(theta)[0], w.x.petsc_vec, Kw.x.petsc_vec)
         return self.forward.on_loaded(load) - self.forward.on_loaded(Kw), w
 
     def observed_motion(self, theta, d: np.ndarray) -> np.ndarray:

@@ -250,7 +250,7 @@ class Profile:
                  f"back-solves, equation residual {self.surrogate.residual(theta):.1e}): no factorization")
         J, dJ = self.surrogate.response(theta)
         fit = self.inner.fit(J)  # the same optimum, on the space the derivatives grew (exact to tol before)
-        u = self.problem.model.function()
+        u = self.problem.model.dofs.function()
         owned = self.surrogate.G.shape[0]
         u.x.array[:owned] = self.surrogate.fields(theta) @ fit.q
         u.x.scatter_forward()

@@ -26,7 +26,7 @@ import time
 import numpy as np
 from mpi4py import MPI
 
-from fenics_elasto.model.elasticity import combine
+from fenics_elasto.model.stiffness import combine
 from fenics_elasto.inverse.objective import InverseProblem
 
 
@@ -81,12 +81,12 @@ class MaterialSurrogate:
         self.comm = problem.scene.comm
         self.forward = problem.forward
         self.lead, self.scale, weights = affine_pieces(problem.forward, problem.params)
-        terms = problem.model.terms
+        terms = problem.model.stiffness.terms
         self.terms = [terms[j] if np.count_nonzero(w) == 1 else combine(w, terms) for j, w in zip(self.lead, weights)]
         self._own = [M for M, w in zip(self.terms, weights) if np.count_nonzero(w) > 1]  # the sums made here
         lift = self.forward.lift(basis)
         self.G = lift.getDenseArray().copy()
-        self.MG = [problem.model.multiply(M, self.G) for M in self.terms]
+        self.MG = [problem.model.dofs.multiply(M, self.G) for M in self.terms]
         lift.destroy()
         self.free = np.ones(len(self.G), bool)
         self.free[self.forward.clamped_boundary] = False
@@ -149,9 +149,9 @@ class MaterialSurrogate:
                 return None
             last = worst
             R = np.hstack([block for block, size in zip(R, relative) if size > tol])
-            B = self.problem.model.dense(R.shape[1])
+            B = self.problem.model.dofs.dense(R.shape[1])
             B.getDenseArray()[:] = R
-            Z = self.problem.model.dense(R.shape[1])
+            Z = self.problem.model.dofs.dense(R.shape[1])
             factors.apply_factors(B, Z)
             self._extend(Z.getDenseArray().copy())
             B.destroy()
@@ -177,7 +177,7 @@ class MaterialSurrogate:
         s2, U = np.linalg.eigh(self._dot(Y, Y))
         keep = s2 > (1e-10 * scale) ** 2
         Q = Y @ (U[:, keep] / np.sqrt(s2[keep]))
-        MQ = [self.problem.model.multiply(M, Q) for M in self.terms]
+        MQ = [self.problem.model.dofs.multiply(M, Q) for M in self.terms]
         for j in range(len(self.terms)):
             cross = self._dot(self.V, MQ[j])
             self.VMV[j] = np.block([[self.VMV[j], cross], [cross.T, self._dot(Q, MQ[j])]])

@@ -33,9 +33,9 @@ class BoundaryForward:
         self.model = model or ElasticModel(scene)
         self.params = scene.parameters()
         self.gdim = scene.gdim
-        self.clamped = self.model.clamped_dofs(scene.fixed)
-        self.clamped_boundary = self.model.clamped_dofs(scene.fixed + scene.loaded)
-        self.loaded = self.model.node_set(scene.loaded, exclude_groups=scene.fixed)
+        self.clamped = self.model.dofs.clamped_dofs(scene.fixed)
+        self.clamped_boundary = self.model.dofs.clamped_dofs(scene.fixed + scene.loaded)
+        self.loaded = self.model.dofs.node_set(scene.loaded, exclude_groups=scene.fixed)
         self.forward_solves = 0
         self.adjoint_solves = 0
         # True: solves at a material value near one already factorized borrow its factors
@@ -50,20 +50,20 @@ class BoundaryForward:
     def coefficients(self, theta) -> tuple[np.ndarray, np.ndarray]:
         """(c, dc/dtheta): K(theta) = sum_j c_j M_j, and each estimated constant's derivative row."""
         E, nu = self.params.materials(theta)
-        return self.model.coefficients(E, nu), self.params.select(*self.model.coefficient_derivatives(E, nu))
+        return self.model.stiffness.coefficients(E, nu), self.params.select(*self.model.stiffness.coefficient_derivatives(E, nu))
 
     # --- loaded-node data <-> fields
 
     def load(self, values: np.ndarray, nodes=None) -> fem.Function:
         """A Function holding per-node rows (canonical order) on ``nodes`` (default: loaded)."""
         nodes = nodes or self.loaded
-        f = self.model.function("load")
-        f.x.array.reshape(-1, self.model.bs)[nodes.blocks] = nodes.local(np.reshape(values, (-1, self.gdim)))
+        f = self.model.dofs.function("load")
+        f.x.array.reshape(-1, self.model.dofs.bs)[nodes.blocks] = nodes.local(np.reshape(values, (-1, self.gdim)))
         return f
 
     def on_loaded(self, f: fem.Function) -> np.ndarray:
         """Rows of a Function at the loaded nodes, canonical order, flat."""
-        return self.loaded.gather(f.x.array.reshape(-1, self.model.bs)[self.loaded.blocks]).ravel()
+        return self.loaded.gather(f.x.array.reshape(-1, self.model.dofs.bs)[self.loaded.blocks]).ravel()
 
     # --- solves
 
@@ -85,14 +85,14 @@ class BoundaryForward:
 
     def reaction_forces(self, theta, u: fem.Function) -> np.ndarray:
         """F = P^T K(theta) u: the loaded-node forces that produce u."""
-        Ku = self.model.function("Ku")
-        self.model.apply_stiffness(self.coefficients(theta)[0], u.x.petsc_vec, Ku.x.petsc_vec)
+        Ku = self.model.dofs.function("Ku")
+        self.model.stiffness.apply(self.coefficients(theta)[0], u.x.petsc_vec, Ku.x.petsc_vec)
         return self.on_loaded(Ku)
 
     def material_gradient(self, theta, u: fem.Function, w: fem.Function) -> np.ndarray:
         """-w^T dK/dtheta_k u for each estimated constant."""
-        dKu = self.model.function("dKu")
-        return -np.array([w.x.petsc_vec.dot(self.model.apply_stiffness(row, u.x.petsc_vec, dKu.x.petsc_vec))
+        dKu = self.model.dofs.function("dKu")
+        return -np.array([w.x.petsc_vec.dot(self.model.stiffness.apply(row, u.x.petsc_vec, dKu.x.petsc_vec))
                           for row in self.coefficients(theta)[1]])
 
     def field_derivative(self, theta, u: fem.Function) -> np.ndarray:
@@ -102,11 +102,11 @@ class BoundaryForward:
         columns = []
         with self.model.solver(c, self.clamped_boundary, self.borrow) as factor:
             for row in dc:
-                rhs = self.model.function("rhs")
-                self.model.apply_stiffness(row, u.x.petsc_vec, rhs.x.petsc_vec)
+                rhs = self.model.dofs.function("rhs")
+                self.model.stiffness.apply(row, u.x.petsc_vec, rhs.x.petsc_vec)
                 rhs.x.petsc_vec.scale(-1.0)
                 rhs.x.petsc_vec.array[self.clamped_boundary] = 0.0
-                du = self.model.function("du")
+                du = self.model.dofs.function("du")
                 factor.solve(rhs.x.petsc_vec, du.x.petsc_vec)
                 columns.append(du.x.petsc_vec.array.copy())
         self.forward_solves += len(columns)
@@ -125,15 +125,15 @@ class BoundaryForward:
         surrogate searches (surrogate.py), which stays exact at every full solve."""
         c, dc = self.coefficients(theta)
         factor = self.model.factorize(c, self.clamped_boundary)
-        D = [self.model.stiffness(row) for row in dc]
+        D = [self.model.stiffness.matrix(row) for row in dc]
 
         def solve(*products) -> np.ndarray:  # -K^{-1} sum D Y, with the Dirichlet rows zero
-            block = self.model.dense(X.shape[1])
+            block = self.model.dofs.dense(X.shape[1])
             rhs = block.getDenseArray()
             for M, Y in products:
-                rhs -= self.model.multiply(M, Y)
+                rhs -= self.model.dofs.multiply(M, Y)
             rhs[self.clamped_boundary] = 0.0
-            out = self.model.dense(X.shape[1])
+            out = self.model.dofs.dense(X.shape[1])
             factor.solve_many(block, out)
             values = out.getDenseArray().copy()
             block.destroy()
@@ -152,8 +152,8 @@ class BoundaryForward:
         """The boundary modes as fields: W on the loaded DOFs, zero elsewhere (dense, owned rows)."""
         W = np.eye(self.force_dofs) if basis is None else basis
         r = W.shape[1]
-        G = self.model.dense(r)
-        rows = self.loaded.dofs(self.model.bs).ravel()
+        G = self.model.dofs.dense(r)
+        rows = self.loaded.dofs(self.model.dofs.bs).ravel()
         G.getDenseArray()[rows] = self.loaded.local(W.reshape(self.loaded.total, self.gdim * r)).reshape(-1, r)
         return G
 
@@ -168,12 +168,12 @@ class BoundaryForward:
         """
         c = self.coefficients(theta)[0]
         G = self.lift(basis)
-        K = self.model.stiffness(c)
+        K = self.model.stiffness.matrix(c)
         rhs = K.matMult(G)
         block = rhs.getDenseArray()
         block *= -1.0
         block[self.clamped_boundary] = G.getDenseArray()[self.clamped_boundary]
-        X = self.model.dense(G.getSize()[1])
+        X = self.model.dofs.dense(G.getSize()[1])
         with self.model.solver(c, self.clamped_boundary, self.borrow and G.getSize()[1] == 1, rtol) as factor:
             factor.solve_many(rhs, X)
         out = X.getDenseArray().copy()

@@ -22,7 +22,8 @@ from dolfinx import la
 
 from scipy.spatial import cKDTree
 
-from fenics_elasto.model.elasticity import ElasticModel, NodeSet
+from fenics_elasto.model.elasticity import ElasticModel
+from fenics_elasto.model.dofs import NodeSet
 from fenics_elasto.util.errors import UserError, require
 
 
@@ -142,15 +143,15 @@ class Observation:
 
     def __init__(self, model: ElasticModel, scene, landmarks: np.ndarray | None = None):
         self.model = model
-        self.gdim = model.gdim
+        self.gdim = model.dofs.gdim
         self.vertices_only = matched_vertices_only(scene, model)
-        self.nodes: NodeSet = model.node_set(scene.matched, vertices_only=self.vertices_only)
+        self.nodes: NodeSet = model.dofs.node_set(scene.matched, vertices_only=self.vertices_only)
         self.node_points = self.nodes.gather(self.nodes.coords)
         self.landmarks = np.zeros((0, self.gdim)) if landmarks is None else np.asarray(landmarks, float)
-        size = np.ptp(model.dof_coords, axis=0).max() if len(model.dof_coords) else 0.0
-        size = model.comm.allreduce(size, op=MPI.MAX)
+        size = np.ptp(model.dofs.dof_coords, axis=0).max() if len(model.dofs.dof_coords) else 0.0
+        size = model.dofs.comm.allreduce(size, op=MPI.MAX)
         try:
-            self.probe = PointProbe(model.V, self.landmarks, tolerance=0.02 * size) if len(self.landmarks) else None
+            self.probe = PointProbe(model.dofs.V, self.landmarks, tolerance=0.02 * size) if len(self.landmarks) else None
         except UserError as err:  # name the file the points came from
             raise UserError(f"{scene.path.parent / (scene.config['target'] or {}).get('landmarks', '')}: {err}") from None
         self.points = np.concatenate([self.node_points, self.landmarks])
@@ -166,7 +167,7 @@ class Observation:
     def values(self, u: dolfinx.fem.Function) -> np.ndarray:
         """(count, gdim) O u (u's ghosts up to date)."""
         array = u.x.array
-        nodal = self.nodes.gather(array.reshape(-1, self.model.bs)[self.nodes.blocks])
+        nodal = self.nodes.gather(array.reshape(-1, self.model.dofs.bs)[self.nodes.blocks])
         if self.probe is None:
             return nodal
         return np.concatenate([nodal, self.probe.values(array)])
@@ -178,51 +179,51 @@ class Observation:
         """A field holding per-node rows (canonical order) at the matched nodes, zero at
         the other nodes -- except, when only vertices are matched, the edge midpoints
         between matched vertices, which follow them linearly (as on the chord)."""
-        f = self.model.function("matched")
-        f.x.array.reshape(-1, self.model.bs)[self.nodes.blocks] = self.nodes.local(values)
+        f = self.model.dofs.function("matched")
+        f.x.array.reshape(-1, self.model.dofs.bs)[self.nodes.blocks] = self.nodes.local(values)
         f.x.scatter_forward()
         if not self.vertices_only:
             return f
-        mesh = self.model.V.mesh
+        mesh = self.model.dofs.V.mesh
         linear = dolfinx.fem.Function(dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (self.gdim,))))
         linear.interpolate(f)  # the vertex values
-        out = self.model.function("matched")
+        out = self.model.dofs.function("matched")
         out.interpolate(linear)  # midpoints: the mean of their edge's vertices
         ends = self._on_matched_facets()
-        array = out.x.array.reshape(-1, self.model.bs)
+        array = out.x.array.reshape(-1, self.model.dofs.bs)
         array[~ends] = 0.0  # only between matched vertices, as the nodes themselves
-        array[self.nodes.blocks] = f.x.array.reshape(-1, self.model.bs)[self.nodes.blocks]
+        array[self.nodes.blocks] = f.x.array.reshape(-1, self.model.dofs.bs)[self.nodes.blocks]
         return out
 
     def _on_matched_facets(self) -> np.ndarray:
         """Mask over V's local blocks: every node (midpoints too) of the matched facets."""
         scene = self.model.scene
-        blocks = self.model.boundary_blocks(scene.matched, vertices_only=False)
-        mask = np.zeros(len(self.model.V.tabulate_dof_coordinates()), bool)
+        blocks = self.model.dofs.boundary_blocks(scene.matched, vertices_only=False)
+        mask = np.zeros(len(self.model.dofs.V.tabulate_dof_coordinates()), bool)
         mask[blocks] = True
         return mask
 
     def transpose(self, r: np.ndarray) -> dolfinx.fem.Function:
         """A Function holding O^T r (owned entries exact): the adjoint load."""
-        f = self.model.function("adjoint_load")
-        array = f.x.array.reshape(-1, self.model.bs)
+        f = self.model.dofs.function("adjoint_load")
+        array = f.x.array.reshape(-1, self.model.dofs.bs)
         array[self.nodes.blocks] = self.nodes.local(r[: self.node_count])
         if self.probe is not None:
-            landmark = self.model.function("landmark_load")
+            landmark = self.model.dofs.function("landmark_load")
             self.probe.add_transpose(r[self.node_count:], landmark.x.array)
             landmark.x.scatter_reverse(la.InsertMode.add)
-            owned = self.model.n_owned_blocks * self.model.bs
+            owned = self.model.dofs.n_owned_blocks * self.model.dofs.bs
             f.x.array[:owned] += landmark.x.array[:owned]
         return f
 
     def rows(self, X: np.ndarray) -> np.ndarray:
         """(count, gdim, k) O X for owned-row DOF columns X."""
-        bs = self.model.bs
+        bs = self.model.dofs.bs
         nodal = self.nodes.gather(X[self.nodes.dofs(bs).ravel()].reshape(len(self.nodes), self.gdim, -1))
         if self.probe is None:
             return nodal
-        column = self.model.function("column")
-        owned = self.model.n_owned_blocks * bs
+        column = self.model.dofs.function("column")
+        owned = self.model.dofs.n_owned_blocks * bs
         parts = []
         for k in range(X.shape[1]):  # a handful of modes: each needs its ghost values
             column.x.array[:owned] = X[:, k]

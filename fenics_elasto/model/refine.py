@@ -51,7 +51,7 @@ from scipy.spatial import cKDTree
 
 from fenics_elasto.config.toml import read_toml, toml_text
 from fenics_elasto.config.problem import validate_problem
-from fenics_elasto.model.elasticity import ElasticModel
+from fenics_elasto.model.dofs import DofLayout
 from fenics_elasto.util.errors import UserError, on_root, require
 from fenics_elasto.mesh.gmsh_models import fresh_gmsh_model, node_positions, open_msh, physical_facets, save
 from fenics_elasto.util.logs import log
@@ -354,7 +354,7 @@ def prolongation(coarse, fine, groups, exclude_groups=()) -> scipy.sparse.csr_ma
     coarse = _scene(coarse)
     fine = _scene(fine, coarse.comm)
     require(coarse.degree == fine.degree, f"{fine.path}: degree {fine.degree}, but {coarse.path} has {coarse.degree}")
-    nodes = [ElasticModel(s).node_set(groups, exclude_groups) for s in (coarse, fine)]
+    nodes = [DofLayout(s).node_set(groups, exclude_groups) for s in (coarse, fine)]
     coarse_coords, fine_coords = (n.gather(n.coords) for n in nodes)
     msh = coarse.mesh_file
     coarse_points, fine_points, weights = on_root(coarse.comm, lambda: facet_lattices(msh, groups, coarse.degree))

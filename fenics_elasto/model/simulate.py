@@ -19,7 +19,9 @@ from mpi4py import MPI
 
 from dolfinx import fem
 
+from fenics_elasto.model.dofs import DofLayout
 from fenics_elasto.model.elasticity import ElasticModel
+from fenics_elasto.model.loads import boundary_load, group_measure
 from fenics_elasto.util.errors import require
 from fenics_elasto.geometry.fields import SmoothFields
 from fenics_elasto.files.writers import write_landmarks
@@ -41,16 +43,16 @@ def material_values(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
 
 def prescribed_function(model: ElasticModel, displacement: dict) -> fem.Function:
     """u(x) = value + G (x - center) [+ ripple(x)] on the nodes of each prescribed group."""
-    g = model.function("prescribed")
-    values = g.x.array.reshape(-1, model.bs)
+    g = model.dofs.function("prescribed")
+    values = g.x.array.reshape(-1, model.dofs.bs)
     for group, spec in displacement.items():
-        blocks = model.boundary_blocks([group])
-        x = model.dof_coords[blocks]
+        blocks = model.dofs.boundary_blocks([group])
+        x = model.dofs.dof_coords[blocks]
         values[blocks] = spec["value"] + (x - spec["center"]) @ spec["gradient"].T
         if spec.get("ripple"):
             ripple = spec["ripple"]
             rng = np.random.default_rng(ripple["seed"])
-            values[blocks] += ripple["amplitude"] * SmoothFields(1, model.gdim, model.gdim, ripple["length"], rng)(x)[0]
+            values[blocks] += ripple["amplitude"] * SmoothFields(1, model.dofs.gdim, model.dofs.gdim, ripple["length"], rng)(x)[0]
     return g
 
 
@@ -61,20 +63,20 @@ def simulate(scene: Scene, model: ElasticModel | None = None) -> Simulation:
             f"{scene.path}: nothing to simulate: add [boundary.load], [boundary.pressure] or [boundary.displacement]")
     require(scene.fixed or scene.displacement, f"{scene.path}: boundary.fixed is empty: clamp at least one group (rigid motions)")
     E, nu = material_values(scene)
-    clamped = model.clamped_dofs(scene.fixed + list(scene.displacement))
+    clamped = model.dofs.clamped_dofs(scene.fixed + list(scene.displacement))
     rhs = None
     if scene.load or scene.pressure:
-        tractions = {g: total / model.group_measure(g) for g, total in scene.load.items()}
-        rhs = model.boundary_load(tractions, scene.pressure)
+        tractions = {g: total / group_measure(model.scene, g) for g, total in scene.load.items()}
+        rhs = boundary_load(model.dofs, tractions, scene.pressure)
     prescribed = prescribed_function(model, scene.displacement) if scene.displacement else None
-    u = model.solve(model.coefficients(E, nu), clamped, rhs, prescribed, nearby=True)  # a shared model: no refactoring
-    magnitude = np.linalg.norm(u.x.array.reshape(-1, model.bs)[: model.n_owned_blocks], axis=1)
+    u = model.solve(model.stiffness.coefficients(E, nu), clamped, rhs, prescribed, nearby=True)  # a shared model: no refactoring
+    magnitude = np.linalg.norm(u.x.array.reshape(-1, model.dofs.bs)[: model.dofs.n_owned_blocks], axis=1)
     result = {
         "materials": {m.name: {"E": m.E.value, "nu": m.nu.value} for m in scene.materials},
         "max_displacement": scene.comm.allreduce(float(magnitude.max(initial=0.0)), op=MPI.MAX),
         "factorizations": model.factorizations,
         "solver": model.stats.as_dict(),
-        "dofs": model.num_dofs,
+        "dofs": model.dofs.num_dofs,
         "degree": scene.degree,
         "wall_time_s": round(time.perf_counter() - start, 3),
     }
@@ -84,7 +86,7 @@ def simulate(scene: Scene, model: ElasticModel | None = None) -> Simulation:
 def write_landmarks_for(scene: Scene, u: fem.Function, path: Path, noise: float = 0.0, seed: int = 0) -> Path:
     """A landmark target (exact node correspondence): ``u``, from any mesh, probed at
     the scene's matched nodes, plus optional Gaussian noise of std ``noise``."""
-    nodes = ElasticModel(scene).node_set(scene.matched)
+    nodes = DofLayout(scene).node_set(scene.matched)
     points = nodes.gather(nodes.coords)
     moved = points + probe(u, points)
     moved += noise * np.random.default_rng(seed).standard_normal(moved.shape)

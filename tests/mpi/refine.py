@@ -4,14 +4,14 @@ import sys
 
 import numpy as np
 
-from fenics_elasto.model.elasticity import ElasticModel
+from fenics_elasto.model.dofs import DofLayout
 from fenics_elasto.model.refine import refine_scene, transfer_bases
 from fenics_elasto.model.scene import load_scene
 
 problem, out, bases = sys.argv[1:4]
 coarse = load_scene(problem)
 fine = load_scene(refine_scene(problem, out))
-nodes = ElasticModel(coarse).node_set(coarse.loaded, coarse.fixed)
+nodes = DofLayout(coarse).node_set(coarse.loaded, coarse.fixed)
 x = nodes.gather(nodes.coords)
 # The affine columns' orthonormal span. The inclusion's loaded top is flat (y = 5): its y
 # column is the constant one again, and QR's third column was then round-off -- 2.7e-15

@@ -68,7 +68,7 @@ class WallLoads:
 
     def __init__(self, forward):
         model = forward.model
-        mesh, V = model.V.mesh, model.V
+        mesh, V = model.dofs.V.mesh, model.dofs.V
         fdim = mesh.topology.dim - 1
         facets = np.sort(forward.scene.facets(forward.scene.loaded)).astype(np.int32)
         tags = dolfinx.mesh.meshtags(mesh, fdim, facets, np.ones(len(facets), np.int32))
@@ -79,11 +79,11 @@ class WallLoads:
         self.traction = _assembled(fem.form(ufl.inner(ufl.TrialFunction(V), v) * ds))
         gdim = mesh.geometry.dim
         self.q_points = self.Q.tabulate_dof_coordinates()[: self.Q.dofmap.index_map.size_local, :gdim]
-        self.v_points = model.dof_coords[: model.n_owned_blocks]
+        self.v_points = model.dofs.dof_coords[: model.dofs.n_owned_blocks]
 
     def block(self, matrix: PETSc.Mat, columns: np.ndarray, model) -> PETSc.Mat:
         """matrix @ columns (owned rows of the trial space) as a dense Mat in V's layout."""
-        C = PETSc.Mat().createDense(((len(columns), PETSc.DETERMINE), (PETSc.DECIDE, columns.shape[1])), comm=model.comm)
+        C = PETSc.Mat().createDense(((len(columns), PETSc.DETERMINE), (PETSc.DECIDE, columns.shape[1])), comm=model.dofs.comm)
         C.setUp()
         C.getDenseArray()[:] = columns
         C.assemble()
@@ -105,7 +105,7 @@ def default_scales(problem) -> tuple[float, float]:
     points = forward.loaded.gather(forward.loaded.coords)
     groups = problem.loaded_groups()
     extents = [np.ptp(points[groups == g], axis=0).max() for g in np.unique(groups)]
-    everything = problem.model.comm.allgather(problem.model.dof_coords[: problem.model.n_owned_blocks])
+    everything = problem.model.dofs.comm.allgather(problem.model.dofs.dof_coords[: problem.model.dofs.n_owned_blocks])
     stacked = np.concatenate(everything)
     diameter = float(np.linalg.norm(np.ptp(stacked, axis=0)))
     return 0.5 * float(np.mean(extents)), 0.02 * diameter
@@ -197,10 +197,10 @@ def pressure_examples(problem, count: int, length: float, rng, levels: int) -> n
     for level, theta in enumerate(material_levels(problem, min(levels, count), rng)):
         chosen = np.flatnonzero(level_of == level)
         factor = model.factorize(forward.coefficients(theta)[0], forward.clamped)
-        B, X = model.dense(len(chosen)), model.dense(len(chosen))
+        B, X = model.dofs.dense(len(chosen)), model.dofs.dense(len(chosen))
         B.getDenseArray()[:] = rhs[:, chosen]
         factor.solve_many(B, X)
-        rows = forward.loaded.dofs(model.bs).ravel()
+        rows = forward.loaded.dofs(model.dofs.bs).ravel()
         fields = X.getDenseArray()[rows].reshape(len(forward.loaded), forward.gdim * len(chosen))
         out[:, chosen] = forward.loaded.gather(fields).reshape(-1, len(chosen))
         for M in (B, X):

@@ -1,0 +1,136 @@
+"""The displacement space and its nodes: sizes, boundary node sets numbered across ranks,
+clamped DOFs, and dense blocks in the space's row layout."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from mpi4py import MPI
+from petsc4py import PETSc
+
+from dolfinx import fem
+
+from fenics_elasto.model.scene import Scene
+
+
+def unrolled(blocks: np.ndarray, bs: int) -> np.ndarray:
+    """(n, bs) unrolled DOF indices of blocks (nodes) of a vector space."""
+    return blocks[:, None] * bs + np.arange(bs)
+
+
+@dataclass
+class NodeSet:
+    """Owned nodes (blocks of the vector space) of a boundary, numbered across ranks.
+
+    The global numbering is canonical -- nodes sorted by position -- so forces, bases
+    and landmarks mean the same under any number of MPI ranks. ``gather`` brings
+    per-node rows of every rank into that order; ``local`` picks this rank's rows.
+    """
+
+    blocks: np.ndarray  # local block indices, owned only
+    coords: np.ndarray  # (n, gdim) reference positions
+    order: np.ndarray  # canonical position -> position in rank-concatenated order
+    positions: np.ndarray  # this rank's nodes' canonical positions
+    comm: MPI.Comm
+
+    @classmethod
+    def create(cls, blocks, coords, comm) -> NodeSet:
+        stacked = np.concatenate(comm.allgather(coords))
+        order = np.lexsort(np.round(stacked, 10).T[::-1]) if len(stacked) else np.zeros(0, int)
+        inverse = np.empty_like(order)
+        inverse[order] = np.arange(len(order))
+        offset = comm.exscan(len(blocks)) or 0
+        return cls(blocks, coords, order, inverse[offset : offset + len(blocks)], comm)
+
+    @property
+    def total(self) -> int:
+        return len(self.order)
+
+    def __len__(self) -> int:
+        return len(self.blocks)
+
+    def dofs(self, bs: int) -> np.ndarray:
+        """(n, bs) local unrolled DOF indices."""
+        return unrolled(self.blocks, bs)
+
+    def gather(self, values: np.ndarray) -> np.ndarray:
+        """Per-node rows of every rank, in canonical order, on every rank."""
+        return np.concatenate(self.comm.allgather(np.ascontiguousarray(values)))[self.order]
+
+    def local(self, values: np.ndarray) -> np.ndarray:
+        """This rank's rows of a canonical per-node array."""
+        return values[self.positions]
+
+
+class DofLayout:
+    """The vector Lagrange space V of a scene and where its nodes are."""
+
+    def __init__(self, scene: Scene):
+        self.scene = scene
+        mesh = scene.mesh
+        self.comm = mesh.comm
+        self.gdim = mesh.geometry.dim
+        self.V = fem.functionspace(mesh, ("Lagrange", scene.degree, (self.gdim,)))
+        self.bs = self.V.dofmap.index_map_bs
+        self.n_owned_blocks = self.V.dofmap.index_map.size_local
+        self.dof_coords = self.V.tabulate_dof_coordinates()[:, : self.gdim]
+
+    @property
+    def num_dofs(self) -> int:
+        return self.V.dofmap.index_map.size_global * self.bs
+
+    @property
+    def owned(self) -> int:
+        """Owned unrolled DOFs on this rank."""
+        return self.n_owned_blocks * self.bs
+
+    def boundary_blocks(self, groups, vertices_only: bool = False) -> np.ndarray:
+        """Owned local block indices of the nodes on the named facet groups.
+
+        For P2 these include the edge midpoints, unless ``vertices_only``.
+        """
+        facets = self.scene.facets(groups)
+        mesh = self.scene.mesh
+        fdim = mesh.topology.dim - 1
+        if vertices_only:
+            mesh.topology.create_connectivity(fdim, 0)
+            mesh.topology.create_connectivity(0, mesh.topology.dim)
+            vertices = np.unique(mesh.topology.connectivity(fdim, 0).array.reshape(-1, fdim + 1)[facets])
+            blocks = fem.locate_dofs_topological(self.V, 0, vertices.astype(np.int32))
+        else:
+            blocks = fem.locate_dofs_topological(self.V, fdim, facets)
+        return np.sort(blocks[blocks < self.n_owned_blocks]).astype(np.int32)
+
+    def node_set(self, groups, exclude_groups=(), vertices_only: bool = False) -> NodeSet:
+        blocks = self.boundary_blocks(groups, vertices_only)
+        if exclude_groups:
+            blocks = np.setdiff1d(blocks, self.boundary_blocks(exclude_groups)).astype(np.int32)
+        return NodeSet.create(blocks, self.dof_coords[blocks], self.comm)
+
+    def clamped_dofs(self, groups) -> np.ndarray:
+        """Owned local unrolled DOFs of the nodes on the groups."""
+        return unrolled(self.boundary_blocks(groups), self.bs).ravel()
+
+    def function(self, name: str = "u") -> fem.Function:
+        u = fem.Function(self.V)
+        u.name = name
+        return u
+
+    def dense(self, columns: int) -> PETSc.Mat:
+        """A dense matrix with V's row layout (owned DOFs) and ``columns`` columns, zeroed."""
+        M = PETSc.Mat().createDense(((self.owned, PETSc.DETERMINE), (PETSc.DECIDE, columns)), comm=self.comm)
+        M.setUp()
+        M.zeroEntries()
+        M.assemble()
+        return M
+
+    def multiply(self, M: PETSc.Mat, Y: np.ndarray) -> np.ndarray:
+        """M Y for owned-row columns Y (numpy), as numpy."""
+        D = self.dense(Y.shape[1])
+        D.getDenseArray()[:] = Y
+        P = M.matMult(D)
+        out = P.getDenseArray().copy()
+        P.destroy()
+        D.destroy()
+        return out
