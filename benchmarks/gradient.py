@@ -15,7 +15,8 @@ from pathlib import Path
 import numpy as np
 
 import fenics_elasto  # noqa: F401
-from fenics_elasto.inverse.estimator import Estimator, Options
+from fenics_elasto.inverse.estimator import Estimator
+from fenics_elasto.inverse.options import Options
 from fenics_elasto.files.writers import write_matched_surfaces
 from fenics_elasto.mesh.builtin import build_scene
 from fenics_elasto.inverse.objective import InverseProblem

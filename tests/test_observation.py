@@ -127,7 +127,7 @@ def test_a_scan_within_the_noise_ends_after_the_scan(tmp_path, capsys, monkeypat
     best scan value looked narrower than the bounds, yet after a whole estimate every
     draw's profile interval was E = 1-1000. Phi* over the start scan already showed it:
     it rises less than the noise's 95 % threshold anywhere."""
-    import fenics_elasto.inverse.estimator as estimate_module
+    import fenics_elasto.inverse.uncertainty.identifiability as identifiability
     from independent import noisy_copy
 
     source = build_scene("inclusion", tmp_path / "source")
@@ -150,7 +150,7 @@ def test_a_scan_within_the_noise_ends_after_the_scan(tmp_path, capsys, monkeypat
     result = json.loads((tmp_path / "out" / "result.json").read_text())
     assert result["uncertainty"]["inclusion.E"]["ci95"] == pytest.approx([1.0, 1000.0])
     # a scan that missed it: the answer's interval, open at both bounds, still says so
-    monkeypatch.setattr(estimate_module, "scan_excludes", lambda values, noise: True)
+    monkeypatch.setattr(identifiability, "scan_excludes", lambda values, noise: True)
     assert main(["estimate", str(source), "--out", str(tmp_path / "late"), "--set", f"target.surfaces={{{table}}}"]) == 0
     warned = capsys.readouterr().err
     assert "undetermined: inclusion.E: its 95 % interval spans its bounds, whatever the start scan showed" in warned

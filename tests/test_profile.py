@@ -5,8 +5,9 @@ truth, and its Gauss-Newton Hessian matches finite differences of that gradient.
 import numpy as np
 import pytest
 
-from fenics_elasto.inverse.estimator import Estimator, Options, estimate
-from fenics_elasto.inverse.profile import bracketed_minimum, cubic_minimizer
+from fenics_elasto.inverse.estimator import Estimator, estimate
+from fenics_elasto.inverse.options import Options
+from fenics_elasto.inverse.outer import bracketed_minimum, cubic_minimizer
 from fenics_elasto.inverse.objective import InverseProblem
 from fenics_elasto.inverse.uncertainty.posterior import laplace
 from fenics_elasto.model.dofs import DofLayout
@@ -108,7 +109,7 @@ def test_controls_profiled_out_by_lsqr_give_the_dense_posterior(letter):
     its counted hat trace is an upper bound, so its noise dof is not above the dense
     one's (98.0 against 106.4 here). And an estimate with the L-BFGS inner solver now
     reports an interval, close to Gauss-Newton's (same data, same prior)."""
-    from fenics_elasto.inverse.profile import linearise_profiled
+    from fenics_elasto.inverse.linearisation import linearise_profiled
 
     estimator = Estimator(letter, Options.from_scene(letter.scene))
     theta = np.array([0.3])
@@ -133,7 +134,7 @@ def test_linear_gaussian_posterior_is_exact():
     """A linear model with Gaussian noise: the Laplace posterior is the exact one. The
     std of least-squares estimates over noise draws matches the Schur-complement std,
     and the noise estimated from one residual (dof counted) is unbiased."""
-    from fenics_elasto.inverse.profile import Linearisation
+    from fenics_elasto.inverse.linearisation import Linearisation
 
     rng = np.random.default_rng(0)
     m, p = 200, 6
@@ -160,7 +161,7 @@ def test_patch_std_sees_noise_correlated_in_space():
     kernel over 4 and 12 point spacings): the spread of the least-squares estimates over
     draws grows, the Laplace std (independent rows) does not, and the patch std follows
     much of the growth; with independent noise it agrees with the Laplace std."""
-    from fenics_elasto.inverse.profile import Linearisation
+    from fenics_elasto.inverse.linearisation import Linearisation
     from fenics_elasto.inverse.uncertainty.posterior import patch_covariance
 
     rng = np.random.default_rng(0)
@@ -192,7 +193,7 @@ def test_patch_std_sees_noise_correlated_in_space():
 def test_offset_shift_is_the_refit_of_a_linear_model():
     """offset_shift predicts where the optimum goes when the residual changes by de (the
     controls following, their prior included): exact for a linear model."""
-    from fenics_elasto.inverse.profile import Linearisation
+    from fenics_elasto.inverse.linearisation import Linearisation
     from fenics_elasto.inverse.uncertainty.posterior import offset_shift
 
     rng = np.random.default_rng(2)
@@ -228,7 +229,7 @@ def test_outward_normals_of_a_closed_surface_whatever_its_triangle_order():
 def test_undetermined_constant_is_flagged():
     """A constant whose effect the controls can mimic exactly (A_s in span A_q): the
     Schur complement vanishes and the interval is infinite, wider than any bounds."""
-    from fenics_elasto.inverse.profile import Linearisation
+    from fenics_elasto.inverse.linearisation import Linearisation
 
     rng = np.random.default_rng(1)
     A_q = rng.standard_normal((50, 4))
@@ -253,7 +254,7 @@ def test_a_profile_interval_open_at_both_bounds_is_undetermined():
     """A profile interval is clipped to the bounds, so it is never wider than them: one
     that reaches both is the undetermined one (before, its std of exactly the bounds'
     width / 3.92 passed as determined: the 2D inclusion at 2 % noise, E = 1-1000)."""
-    from fenics_elasto.inverse.profile import Linearisation
+    from fenics_elasto.inverse.linearisation import Linearisation
 
     rng = np.random.default_rng(2)
     lin = Linearisation(0.01 * rng.standard_normal(50), rng.standard_normal((50, 4)), rng.standard_normal((50, 1)),
@@ -270,7 +271,7 @@ def test_a_profile_interval_open_at_both_bounds_is_undetermined():
 def test_a_skewed_profile_interval_gives_the_std_of_its_mean_information():
     """sigma from a profile interval closed at both ends: 1/sqrt of the mean of the two
     sides' information (Z95 / arm)^2; open at a bound: the half-width / Z95."""
-    from fenics_elasto.inverse.uncertainty.posterior import Z95, profile_std
+    from fenics_elasto.inverse.uncertainty.profile_interval import Z95, profile_std
 
     s = np.array([1.0])
     closed = np.array([[False, False]])
@@ -284,7 +285,8 @@ def test_a_skewed_profile_interval_gives_the_std_of_its_mean_information():
 
 
 def test_a_scan_within_the_noise_threshold_excludes_nothing():
-    from fenics_elasto.inverse.uncertainty.posterior import CHI2_95, scan_excludes
+    from fenics_elasto.inverse.uncertainty.profile_interval import CHI2_95
+    from fenics_elasto.inverse.uncertainty.identifiability import scan_excludes
 
     noise = 0.2
     threshold = 0.5 * CHI2_95 * noise**2
@@ -296,7 +298,7 @@ def test_an_undetermined_constant_leaves_the_others_patch_std_and_offset_finite(
     """One constant the controls mimic, one they cannot: the patch std is infinite
     exactly where the Laplace std is (the inverse Schur complement's inf), never
     inf * 0 = nan, the widening stays 1 there and the offset shift is absent."""
-    from fenics_elasto.inverse.profile import Linearisation
+    from fenics_elasto.inverse.linearisation import Linearisation
     from fenics_elasto.inverse.uncertainty.posterior import offset_shift, patch_covariance
 
     rng = np.random.default_rng(1)
@@ -400,7 +402,7 @@ def test_rough_organ_targets_are_smoothed_and_outlines_are_not(scenes, letter, t
 def test_posterior_noise_is_the_larger_of_residual_and_roughness():
     """A rough target's residual underestimates its noise: the posterior takes the target's
     own roughness when it is larger, and says which it used."""
-    from fenics_elasto.inverse.profile import Linearisation
+    from fenics_elasto.inverse.linearisation import Linearisation
 
     rng = np.random.default_rng(2)
     A_q, A_s = rng.standard_normal((100, 3)), rng.standard_normal((100, 1))
@@ -417,7 +419,7 @@ def test_profile_interval_follows_the_shape_of_phi():
     """The profile-likelihood interval: for a quadratic Phi* it is the Laplace interval;
     for a skewed one it is where Phi* rises chi2(0.95)/2 noise^2 (exact ends known); a
     Phi* flat on one side leaves that side open to the bound."""
-    from fenics_elasto.inverse.uncertainty.posterior import profile_interval
+    from fenics_elasto.inverse.uncertainty.profile_interval import profile_interval
 
     calls = []
 
@@ -447,7 +449,7 @@ def test_a_jittery_phi_is_bracketed_not_chased():
     with bracketing alone, 6 with neither), within the jitter's own reach of the
     jitter-free ends: a jitter of 5 % of the threshold at the end and at the minimum
     moves the crossing by up to 5 % of the arm."""
-    from fenics_elasto.inverse.uncertainty.posterior import profile_interval
+    from fenics_elasto.inverse.uncertainty.profile_interval import profile_interval
 
     calls = []
     noise, std, s_hat = 0.1, 0.3, 1.0
@@ -470,7 +472,7 @@ def test_values_the_estimate_computed_seed_the_profile_bracket():
     outside that interleave (a jagged Phi*, whose computed values are inner minima that
     can only lie above the best one) give the farthest value inside, not the nearest
     outside."""
-    from fenics_elasto.inverse.uncertainty.posterior import profile_interval
+    from fenics_elasto.inverse.uncertainty.profile_interval import profile_interval
 
     noise, std, s_hat = 0.1, 0.3, 1.0
     reach = 1.959964 * std
@@ -498,7 +500,7 @@ def test_a_jagged_phi_does_not_shrink_the_interval():
     """Phi* that jumps up right beside the answer (inner fits in other local minima on a
     rough target) would give a profile interval of almost nothing; that side falls back to
     the Laplace end and says so. A skewed Phi*'s shorter side is kept."""
-    from fenics_elasto.inverse.uncertainty.posterior import profile_interval, untrusted_sides
+    from fenics_elasto.inverse.uncertainty.profile_interval import profile_interval, untrusted_sides
 
     noise, std, s_hat = 0.1, 0.3, 1.0
     reach = 1.959964 * std
@@ -525,7 +527,7 @@ def test_an_inner_spread_widens_the_profile_interval_to_the_trend_minimum():
     its value at the answer. With the threshold raised by J (jitter_noise) the interval
     holds s0; the noise's threshold, with the Laplace fallback for the dip's too-short
     sides (untrusted_sides), does not."""
-    from fenics_elasto.inverse.uncertainty.posterior import CHI2_95, jitter_noise, profile_interval, untrusted_sides
+    from fenics_elasto.inverse.uncertainty.profile_interval import CHI2_95, jitter_noise, profile_interval, untrusted_sides
 
     noise, std, s_hat, J = 0.1, 0.3, 1.0, 0.2
     noisy = jitter_noise(noise, J)

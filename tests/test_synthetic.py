@@ -11,7 +11,10 @@ from conftest import run_cli
 from fenics_elasto.geometry.fields import SmoothFields
 from fenics_elasto.mesh.builtin import build_scene
 from fenics_elasto.inverse.objective import InverseProblem
-from fenics_elasto.inverse.estimator import Estimator, Options, _bias_warnings, estimate, fit_of_bases
+from fenics_elasto.inverse.estimator import Estimator, estimate
+from fenics_elasto.inverse.report import _bias_warnings
+from fenics_elasto.inverse.options import Options
+from fenics_elasto.inverse.report import fit_of_bases
 from fenics_elasto.inverse.reduction.bases import Bases, missing_wall_motion, reach_warning, train_bases
 from fenics_elasto.model.scene import load_scene
 from fenics_elasto.inverse.reduction.synthetic import Generator, affine_basis, pressure_examples
@@ -105,7 +108,8 @@ def test_a_constant_mimicked_here_but_seen_by_the_scan_runs_with_a_warning(tmp_p
 
 
 def test_scan_sees_a_rise_not_noise_or_round_off():
-    from fenics_elasto.inverse.uncertainty.posterior import CHI2_95, scan_sees
+    from fenics_elasto.inverse.uncertainty.profile_interval import CHI2_95
+    from fenics_elasto.inverse.uncertainty.identifiability import scan_sees
 
     noise, still = 0.01, 10.0
     threshold = 0.5 * CHI2_95 * noise**2
@@ -179,7 +183,7 @@ def test_bases_that_miss_wall_motion_say_how_far_it_moves_E(tmp_path):
         estimator = Estimator(problem, Options.from_scene(scene), W)
         estimator.run()
         theta, best, _ = estimator.final()
-        post = estimator.posterior(best)
+        post = estimator.uncertainty.posterior(best)
         missing = missing_wall_motion(problem, W, theta, best.evaluation, estimator.profile.linearisation(best))
         return theta[0] / 10.0, missing, _bias_warnings(estimator.params, fit_of_bases(estimator, theta, best), post)
 

@@ -100,7 +100,8 @@ def mesh_check(problem_path: Path, out: Path, overrides, result, basis) -> dict:
     the refined loaded nodes exactly (nested meshes)."""
     import time
 
-    from fenics_elasto.inverse.estimator import Options, estimate
+    from fenics_elasto.inverse.options import Options
+    from fenics_elasto.inverse.estimator import estimate
     from fenics_elasto.inverse.objective import InverseProblem
     from fenics_elasto.model.refine import refine_scene, transfer_bases
     from fenics_elasto.model.scene import load_scene

@@ -13,6 +13,8 @@ canonical order (elasticity.NodeSet), the same under any number of MPI ranks.
 
 from __future__ import annotations
 
+from contextlib import contextmanager
+
 import numpy as np
 from petsc4py import PETSc
 
@@ -38,10 +40,23 @@ class BoundaryForward:
         self.loaded = self.model.dofs.node_set(scene.loaded, exclude_groups=scene.fixed)
         self.forward_solves = 0
         self.adjoint_solves = 0
-        # True: solves at a material value near one already factorized borrow its factors
-        # (solvers.NearbySolver) instead of factorizing -- set by an estimate whose
-        # surrogate stands in for the block solves (estimate.Estimator)
-        self.borrow = False
+        self._borrow = False  # inside ``borrowing()``
+
+    @contextmanager
+    def borrowing(self):
+        """Solves in the block at a material value near one already factorized borrow its
+        factors (solvers.NearbySolver) instead of factorizing: an estimate whose surrogate
+        stands in for the block solves holds it after its first solve (Profile.borrowing)."""
+        before, self._borrow = self._borrow, True
+        try:
+            yield
+        finally:
+            self._borrow = before
+
+    @property
+    def borrows(self) -> bool:
+        """Inside ``borrowing()``."""
+        return self._borrow
 
     @property
     def force_dofs(self) -> int:
@@ -70,18 +85,18 @@ class BoundaryForward:
     def from_forces(self, theta, forces: np.ndarray) -> fem.Function:
         self.forward_solves += 1
         f = self.load(forces)  # kept alive: its petsc_vec borrows its memory
-        return self.model.solve(self.coefficients(theta)[0], self.clamped, f.x.petsc_vec, nearby=self.borrow)
+        return self.model.solve(self.coefficients(theta)[0], self.clamped, f.x.petsc_vec, nearby=self._borrow)
 
     def from_boundary(self, theta, d: np.ndarray) -> fem.Function:
         self.forward_solves += 1
         return self.model.solve(self.coefficients(theta)[0], self.clamped_boundary, None, prescribed=self.load(d),
-                                nearby=self.borrow)
+                                nearby=self._borrow)
 
     def adjoint(self, theta, load: fem.Function, boundary: bool) -> fem.Function:
         """w with K w = load (w = 0 on the fixed nodes, and on the loaded ones if ``boundary``)."""
         self.adjoint_solves += 1
         clamped = self.clamped_boundary if boundary else self.clamped
-        return self.model.solve(self.coefficients(theta)[0], clamped, load.x.petsc_vec, nearby=self.borrow)
+        return self.model.solve(self.coefficients(theta)[0], clamped, load.x.petsc_vec, nearby=self._borrow)
 
     def reaction_forces(self, theta, u: fem.Function) -> np.ndarray:
         """F = P^T K(theta) u: the loaded-node forces that produce u."""
@@ -100,7 +115,7 @@ class BoundaryForward:
         on the free DOFs, du = 0 on the loaded and fixed ones (one back-solve each)."""
         c, dc = self.coefficients(theta)
         columns = []
-        with self.model.solver(c, self.clamped_boundary, self.borrow) as factor:
+        with self.model.solver(c, self.clamped_boundary, self._borrow) as factor:
             for row in dc:
                 rhs = self.model.dofs.function("rhs")
                 self.model.stiffness.apply(row, u.x.petsc_vec, rhs.x.petsc_vec)
@@ -161,7 +176,7 @@ class BoundaryForward:
         """X (owned DOFs, r): the field of each boundary mode (W: force_dofs x r; None: all).
 
         The r right-hand sides [-K W on free rows, W on the loaded rows] go through the
-        one factorization of K_D as a dense block (MatMatSolve). With ``borrow`` a single
+        one factorization of K_D as a dense block (MatMatSolve). Inside ``borrowing()`` a single
         mode (reduction.missing_wall_motion's) is a single solve on nearby factors, to
         ``rtol`` if given (a diagnostic needs fewer CG steps); a block pays a factorization
         (CG would take each column alone).
@@ -174,7 +189,7 @@ class BoundaryForward:
         block *= -1.0
         block[self.clamped_boundary] = G.getDenseArray()[self.clamped_boundary]
         X = self.model.dofs.dense(G.getSize()[1])
-        with self.model.solver(c, self.clamped_boundary, self.borrow and G.getSize()[1] == 1, rtol) as factor:
+        with self.model.solver(c, self.clamped_boundary, self._borrow and G.getSize()[1] == 1, rtol) as factor:
             factor.solve_many(rhs, X)
         out = X.getDenseArray().copy()
         for M in (G, K, rhs, X):

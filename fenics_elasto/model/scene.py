@@ -7,7 +7,6 @@ Everything a user can get wrong is checked here, once, with a one-line message.
 from __future__ import annotations
 
 import copy
-import itertools
 
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -142,15 +141,6 @@ class Parameters:
     def s_bounds(self) -> list[tuple[float, float]]:
         low, high = np.array(self.bounds, float).reshape(len(self), 2).T
         return list(zip(self.to_s(low), self.to_s(high)))
-
-    def scan(self, n: int) -> list[np.ndarray]:
-        """A grid of n values per constant at the centres of n equal parts of its bounds
-        (log-spaced for E)."""
-        q = (np.arange(n) + 0.5) / n
-        low, high = np.array(self.bounds, float).reshape(len(self), 2).T
-        s_low, s_high = self.to_s(low), self.to_s(high)
-        axes = [self.to_theta(s_low + qi * (s_high - s_low)) for qi in q]
-        return [np.array([axes[i][k] for k, i in enumerate(index)]) for index in itertools.product(range(n), repeat=len(self))]
 
     def describe(self, theta) -> str:
         return "  ".join(f"{label} = {value:.5g}" for label, value in zip(self.labels, np.atleast_1d(theta)))

@@ -1,0 +1,120 @@
+"""Checks of an estimate's set-up and answer that need no optimisation: a target that does
+not overlap the source or is in other units, a full force space that fits any material,
+and a final fit worse than the target can resolve.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from fenics_elasto.util.errors import UserError, require
+from fenics_elasto.inverse.inner import InnerResult
+from fenics_elasto.inverse.objective import InverseProblem
+from fenics_elasto.inverse.options import Options
+
+
+def check_overlap(problem: InverseProblem) -> float:
+    """Refuse a target that does not lie on the observed surface; return Phi at u = 0."""
+    y = problem.observation.points
+    residual = problem.residual_at_rest
+    observed = problem.misfit.weights > 0
+    size = float(np.linalg.norm(np.ptp(y, axis=0)))
+    distance = float(np.sqrt(np.mean(np.sum(residual[observed] ** 2, axis=1)))) if observed.any() else 0.0
+    require(distance < 0.25 * size,
+            f"{problem.scene.path}: the target does not overlap the matched surface "
+            f"(rms distance {distance:.3g} vs matched size {size:.3g}); is it in the same units and frame?")
+    return problem.misfit.cost(residual)
+
+
+def check_determined(problem: InverseProblem, basis, options: Options, inner: str) -> str | None:
+    """Refuse a full force space that can fit the data for any material; None if fine.
+
+    Only for the L-BFGS inner solvers: with Gauss-Newton the linearisation after the
+    scan tells (``Estimator.check_identifiable``), and counting is too strict where
+    elasticity smooths a few more boundary directions than constraints away. Counting,
+    generically: the loaded nodes' displacements are the controls; each
+    matched surface point asks one (normal) constraint, each landmark gdim. A loaded
+    node that is itself matched meets its own constraint, leaving gdim - 1 free
+    directions; every other loaded node leaves gdim. When the free directions are at
+    least the remaining constraints plus the materials, the target is fitted exactly
+    whatever the materials are (walls sliding along their target, forces scaling).
+    """
+    if basis is not None or inner == "gauss-newton":
+        return None
+    misfit, observation = problem.misfit, problem.observation
+    surface = misfit.surface_rows()
+    surface = surface[misfit.weights[surface] > 0]
+    node_is_loaded = _nodes_in(problem, observation.nodes, problem.loaded)
+    own = int(np.sum(node_is_loaded[surface[surface < observation.node_count]]))
+    free = problem.force_dofs - own
+    constraints = len(surface) - own + problem.gdim * len(misfit.landmark_rows()) + len(problem.params)
+    if free < constraints:
+        return None
+    message = (f"{problem.scene.path}: the full force space cannot determine {', '.join(problem.params.labels)}: "
+               f"its {free} free boundary directions exceed the {constraints} the target constrains, so every "
+               f"material fits it exactly; give reduced bases ([reduction], e.g. from `fenics-elasto train "
+               f"{problem.scene.path.name} --synthetic 40 --rank 20 --out bases.npz`) or landmarks inside the body "
+               f"([target] landmarks), or set optimizer.allow_undetermined = true")
+    if not options.allow_undetermined:
+        raise UserError(message)
+    return "undetermined set-up (allow_undetermined = true): " + message.split(": ", 1)[1].split("; give")[0]
+
+
+def _nodes_in(problem, nodes, other) -> np.ndarray:
+    """For each node of ``nodes`` (canonical order): is it a node of ``other``?"""
+    tree = cKDTree(other.gather(other.coords)) if other.total else None
+    points = nodes.gather(nodes.coords)
+    if tree is None or not len(points):
+        return np.zeros(len(points), bool)
+    gap, _ = tree.query(points)
+    return gap < 1e-12 * max(1.0, float(np.ptp(points)))
+
+
+EXTENT_RATIO = 1.5  # a target this much larger or smaller than the surface it matches is suspect
+UNITS_RATIO = 3.0  # ... and this much larger is never right (mm against cm is 10x): refused
+NOISE_RATIO = 3.0  # a final rms distance above this x [target] noise fits badly
+
+
+def check_extent(problem: InverseProblem) -> list[str]:
+    """A target that overlaps the source (check_overlap) can still be wrong: in other
+    units (10x larger) or of another part. Compare each target surface's extent with
+    the matched nodes it is compared with: more than UNITS_RATIO x larger is refused
+    (no elasticity turns a surface into one three times its size), beyond EXTENT_RATIO
+    either way is a warning (a partial segmentation is smaller and may be right)."""
+    out, misfit, spec = [], problem.misfit, problem.scene.config["target"] or {}
+    matched = problem.scene.matched
+    for rows, term in zip(misfit.slices, misfit.terms):
+        for i, surface in enumerate(getattr(term, "surfaces", [])):
+            name = f"target.surface ({spec['surface']})" if spec.get("surface") else \
+                f"target.surfaces.{matched[i]} ({spec['surfaces'][matched[i]]})"
+            own = problem.observation.points[rows][term.surface_of == i]
+            size = float(np.linalg.norm(np.ptp(own, axis=0))) if len(own) else 0.0
+            if size <= 0:
+                continue
+            ratio = surface.extent / size
+            message = (f"{name} spans {ratio:.3g} x the matched surface it is compared with "
+                       f"({surface.extent:.3g} vs {size:.3g}): in other units, or of another part?")
+            require(ratio <= UNITS_RATIO, message)
+            if not 1 / EXTENT_RATIO < ratio < EXTENT_RATIO:
+                out.append(message)
+    return out
+
+
+def target_warnings(problem: InverseProblem, best: InnerResult) -> list[str]:
+    """The final rms distance against what the target can resolve: NOISE_RATIO x
+    [target] noise if given, else the target's mean edge length."""
+    out, spec = [], problem.scene.config["target"] or {}
+    surfaces = [s for term in problem.misfit.terms for s in getattr(term, "surfaces", [])]
+    distances = problem.distances(best.evaluation.residual)
+    for kind, distance in distances.items():
+        if spec.get("noise"):
+            scale, what = NOISE_RATIO * spec["noise"], f"{NOISE_RATIO:g} x target.noise"
+        elif kind == "surface" and surfaces:
+            scale, what = float(np.mean([s.mean_edge for s in surfaces])), "the target's mean edge length"
+        else:
+            continue
+        if distance["rms"] > scale:
+            out.append(f"the final rms {kind} distance {distance['rms']:.3g} is above {what} ({scale:.3g}): "
+                       "the model does not fit the target; check its units, frame and the set-up")
+    return out

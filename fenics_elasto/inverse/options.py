@@ -1,0 +1,24 @@
+"""The optimiser's settings: problem.toml's [optimizer] table, checked by config/problem.py."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass
+class Options:
+    inner: str = "auto"
+    inner_maxiter: int = 400
+    outer_maxiter: int = 40
+    outer_xtol: float = 1e-3  # the outer loop stops once a step moves log E by less (nu: a tenth of it)
+    scan: int = 5  # material values per estimated constant in the initial scan (1: the initial values only)
+    inner_tol: float = 1e-6  # relative decrease of Phi that ends an L-BFGS inner loop (Gauss-Newton: its square)
+    full_gn_limit: int = 1500  # largest full force space for which "auto" picks Gauss-Newton
+    anchor: float = 1e-4  # Gauss-Newton prior towards the surface-matched start, relative to the data curvature
+    surrogate: bool = True  # reduced bases: outer loop on the reduced-basis response in the materials
+    allow_undetermined: bool = False  # run a set-up the data cannot determine (with a warning)
+
+    @classmethod
+    def from_scene(cls, scene) -> Options:
+        """The scene's [optimizer] table (checked and completed by config.py)."""
+        return cls(**scene.config["optimizer"])

@@ -1,0 +1,127 @@
+"""What an estimate says: its warnings, the printed lines on how sure it is, and
+result.json's record.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from fenics_elasto.inverse.inner import InnerResult
+from fenics_elasto.inverse.uncertainty.posterior import Posterior
+from fenics_elasto.inverse.reduction.bases import bases_fit, missing_wall_motion
+
+from typing import TYPE_CHECKING
+
+
+if TYPE_CHECKING:  # the driver these functions report on (it imports them)
+    from fenics_elasto.inverse.estimator import Estimator
+
+
+def describe_uncertainty(post: Posterior, theta) -> list[str]:
+    """``prostate.E = 48.6 ± 1.9 (95 %: 45.0-52.4)`` per estimated constant, and how much
+    a structured residual widened it (posterior.patch_covariance)."""
+    return [f"{label} = {value:.4g} ± {sd:.2g} (95 %: {lo:.4g}-{hi:.4g})"
+            + (f"; widened {w:.2g}x: the residual is structured, not noise" if w > WIDENED_NOTE else "")
+            for label, value, sd, (lo, hi), w in zip(post.labels, theta, post.std(), post.interval(), post.widening)]
+
+
+WIDENED_NOTE = 1.05  # a widening of the interval worth a word
+
+
+def describe_offset(post: Posterior) -> list[str]:
+    """How far a target bigger all round (posterior.target_offset) would move each constant."""
+    if post.offset is None:
+        return []
+    delta, ds = post.offset
+    moved = [f"{label} by {100 * np.expm1(d):+.2g} %" if is_E else f"{label} by {d:+.2g}"
+             for label, d, is_E in zip(post.labels, ds, post.is_E) if np.isfinite(d)]
+    if not moved:
+        return []
+    return [f"a target {delta:.3g} bigger all round (a tenth of its edge: a segmentation bias no residual shows) "
+            f"would move {', '.join(moved)} (first order)"]
+
+
+def fit_of_bases(estimator: Estimator, theta, best: InnerResult) -> dict | None:
+    """result.json's ``bases_fit``: the share of the surface-matched wall motion the bases
+    span, and how far the estimate moves when they may also use what they miss
+    (reduction.missing_wall_motion; relative for E, absolute for nu)."""
+    fit = bases_fit(estimator.basis, estimator.d0)
+    lin = estimator.profile.linearisation(best)
+    if fit is None or lin is None:
+        return fit
+    missing = missing_wall_motion(estimator.problem, estimator.basis, theta, best.evaluation, lin)
+    params = estimator.params
+    shift = np.where(params.is_E, np.expm1(missing["shift_s"]), missing["shift_s"])
+    return {**fit, "missing_wall_rms": missing["missing_wall_rms"],
+            "shift_if_enriched": {label: float(v) for label, v in zip(params.labels, shift)},
+            "shift_if_enriched_s": [float(v) for v in missing["shift_s"]]}
+
+
+def run_warnings(estimator: Estimator, theta, interrupted: bool, fit=None, post=None) -> list[str]:
+    out = []
+    profile = estimator.profile
+    if profile.unconverged:
+        out.append(f"the inner solver stopped at its iteration limit ({estimator.options.inner_maxiter}) at "
+                   f"{profile.unconverged} of {sum(stage != 'ci' for *_, stage in profile.solved)} material "
+                   "values: raise optimizer.inner_maxiter")
+    for label, value, (lo, hi) in zip(estimator.params.labels, theta, estimator.params.bounds):
+        if np.isclose(value, lo, rtol=1e-3) or np.isclose(value, hi, rtol=1e-3):
+            out.append(f"{label} = {value:.4g} is at its bound [{lo:g}, {hi:g}]: widen the bounds or check the set-up")
+    if fit is not None and fit["wall_motion_explained"] < 0.9:
+        out.append(f"the bases explain {100 * fit['wall_motion_explained']:.0f} % of the wall motion surface "
+                   "matching finds; train with more or other examples (e.g. --synthetic)")
+    out += _bias_warnings(estimator.params, fit, post)
+    return out
+
+
+BIAS_MIN = (0.02, 0.01)  # a shift of log E (about 2 %) or of nu worth a warning, if also above 1 sigma
+
+
+def _bias_warnings(params, fit, post) -> list[str]:
+    """Bases that miss wall motion which would move a constant by more than its std
+    (and more than BIAS_MIN): a bias the interval does not show."""
+    if not fit or "shift_if_enriched_s" not in fit:
+        return []
+    std = post.std_s if post is not None else np.zeros(len(params))
+    out = []
+    for label, is_E, shift, shift_s, sd in zip(params.labels, params.is_E, fit["shift_if_enriched"].values(),
+                                                fit["shift_if_enriched_s"], std):
+        if abs(shift_s) > max(BIAS_MIN[0] if is_E else BIAS_MIN[1], sd):
+            moved = f"{100 * shift:+.1f} %" if is_E else f"{shift:+.3f}"
+            out.append(f"the bases miss wall motion (rms {fit['missing_wall_rms']:.3g}) that would move {label} by "
+                       f"about {moved} (first order), more than its interval says: train with more or other examples "
+                       "(--synthetic N with a higher rank)")
+    return out
+
+
+def record(estimator: Estimator, theta, best: InnerResult, phi_undeformed, warnings, interrupted, start) -> dict:
+    problem, profile = estimator.problem, estimator.profile
+    E, nu = problem.params.materials(theta)
+    initial = profile.solved[0][1].value if profile.solved else None
+    return {
+        "materials": {m.name: {"E": float(E[i]), "nu": float(nu[i])} for i, m in enumerate(problem.scene.materials)},
+        "estimated": list(problem.params.labels),
+        "objective": {"undeformed": phi_undeformed, "initial": initial, "final": best.evaluation.phi,
+                      "prior": best.prior},
+        "surface_distance": problem.distances(best.evaluation.residual).get(
+            "surface", problem.distances(best.evaluation.residual).get("landmarks")),
+        "distances": problem.distances(best.evaluation.residual),
+        "iterations": {"outer": estimator.outer_iterations, "inner": profile.inner_iterations,
+                       "evaluations": len(profile.solved),
+                       "surrogate_evaluations": estimator.surrogate.evaluations if estimator.surrogate else 0},
+        "factorizations": problem.model.factorizations,
+        "solves": {"forward": problem.forward.forward_solves, "adjoint": problem.forward.adjoint_solves},
+        "dofs": problem.model.dofs.num_dofs,
+        "force_dofs": problem.force_dofs,
+        "rank": None if estimator.basis is None else int(estimator.basis.shape[1]),
+        "inner_solver": estimator.inner_name,
+        "match_nodes": "vertices" if problem.observation.vertices_only else "all",
+        "degree": problem.scene.degree,
+        "mpi_ranks": problem.scene.comm.size,
+        "interrupted": interrupted,
+        "warnings": warnings,
+        "wall_time_s": round(time.perf_counter() - start, 3),
+        "history": profile.history(),
+    }
