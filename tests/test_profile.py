@@ -322,47 +322,49 @@ def test_surface_roughness_is_the_noise_added_to_it():
     neighbourhood of a coarse letter-like outline) and a finely sampled clean sphere ~0."""
     import pyvista as pv
 
+    from fenics_elasto.geometry.smoothing import roughness
     from fenics_elasto.geometry.surface import Surface
 
     rng = np.random.default_rng(0)
     sphere = pv.Icosphere(radius=20.0, nsub=5)
     points, triangles = np.asarray(sphere.points), sphere.faces.reshape(-1, 4)[:, 1:]
     clean = Surface(points, triangles)
-    assert clean.roughness() < 1.5 * clean.mean_edge**2 / 20.0  # curvature alone: ~edge^2 / R (0.02 here)
+    assert roughness(clean) < 1.5 * clean.mean_edge**2 / 20.0  # curvature alone: ~edge^2 / R (0.02 here)
     for std in (0.25, 1.0):
-        assert Surface(points + std * rng.standard_normal(points.shape), triangles).roughness() == pytest.approx(std, rel=0.05)
+        assert roughness(Surface(points + std * rng.standard_normal(points.shape), triangles)) == pytest.approx(std, rel=0.05)
     angle = np.linspace(0.0, 2 * np.pi, 2000, endpoint=False)
     circle = np.c_[np.cos(angle), np.sin(angle)] * 3.0
     segments = np.c_[np.arange(2000), (np.arange(2000) + 1) % 2000]
-    assert Surface(circle + 0.05 * rng.standard_normal(circle.shape), segments).roughness() == pytest.approx(0.05, rel=0.05)
+    assert roughness(Surface(circle + 0.05 * rng.standard_normal(circle.shape), segments)) == pytest.approx(0.05, rel=0.05)
     zigzag = np.array([[0, 0], [1, 0], [1, 1], [2, 1], [2, 0], [3, 0], [3, 2], [0, 2]], float)  # corners only
     dense = np.concatenate([np.linspace(a, b, 4, endpoint=False) for a, b in zip(zigzag, np.roll(zigzag, -1, axis=0))])
     loop = np.c_[np.arange(len(dense)), (np.arange(len(dense)) + 1) % len(dense)]
-    assert Surface(dense, loop).roughness() < 1e-12
+    assert roughness(Surface(dense, loop)) < 1e-12
 
 
 def test_rough_targets_are_smoothed_without_shrinking():
-    """Surface.smoothed (Taubin lambda|mu): noise at the sampling's wavelength falls over
+    """smoothing.smoothed (Taubin lambda|mu): noise at the sampling's wavelength falls over
     10x, the shape stays (a noisy sphere's mean radius within 2 % of the noise std,
     a clean one's vertices within 2e-3 edges); is_rough tells noisy from clean."""
     import pyvista as pv
 
+    from fenics_elasto.geometry.smoothing import is_rough, noise, roughness, smoothed
     from fenics_elasto.geometry.surface import Surface
 
     rng = np.random.default_rng(3)
     sphere = pv.Icosphere(radius=20.0, nsub=5)
     points, triangles = np.asarray(sphere.points), sphere.faces.reshape(-1, 4)[:, 1:]
     clean = Surface(points, triangles)
-    assert not clean.is_rough() and clean.smoothed_from is None
-    assert np.abs(np.linalg.norm(clean.smoothed().points, axis=1) - 20.0).max() < 2e-3 * clean.mean_edge
+    assert not is_rough(clean) and clean.smoothed_from is None
+    assert np.abs(np.linalg.norm(smoothed(clean).points, axis=1) - 20.0).max() < 2e-3 * clean.mean_edge
     std = 0.3 * clean.mean_edge
     noisy = Surface(points + std * rng.standard_normal(points.shape), triangles)
-    smooth = noisy.smoothed()
-    assert noisy.is_rough() and smooth.smoothed_from == pytest.approx(std, rel=0.05)
-    assert smooth.roughness() < 0.1 * std  # the highest frequencies: gone
-    probe = Surface(points + std * rng.standard_normal(points.shape), triangles).smoothed()
+    smooth = smoothed(noisy)
+    assert is_rough(noisy) and smooth.smoothed_from == pytest.approx(std, rel=0.05)
+    assert roughness(smooth) < 0.1 * std  # the highest frequencies: gone
+    probe = smoothed(Surface(points + std * rng.standard_normal(points.shape), triangles))
     shift = np.linalg.norm(probe.points, axis=1) - np.linalg.norm(smooth.points, axis=1)  # two draws: filtered noise
-    assert smooth.noise() == pytest.approx(np.std(shift) / np.sqrt(2), rel=0.15)  # what a matched point sees
+    assert noise(smooth) == pytest.approx(np.std(shift) / np.sqrt(2), rel=0.15)  # what a matched point sees
     radius = np.linalg.norm(smooth.points, axis=1)
     assert abs(radius.mean() - 20.0) < 0.02 * std  # no shrinking (a plain Laplacian: -0.1 std per pass here)
     assert np.sqrt(np.mean((radius - 20.0) ** 2)) < 0.3 * std  # the noise itself mostly gone

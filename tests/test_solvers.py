@@ -17,6 +17,7 @@ from fenics_elasto.model.forward import BoundaryForward
 from fenics_elasto.model.scene import load_scene
 from fenics_elasto.model.simulate import material_values, simulate
 from fenics_elasto.model.solvers import DIRECT_LIMIT, SolverError, SolverSettings
+from fenics_elasto.model.responses import response_block
 
 MPI_SCRIPT = Path(__file__).parent / "mpi" / "solvers.py"
 
@@ -43,7 +44,7 @@ def forward_and_block(scene, settings: SolverSettings, columns: int = 3):
     rng = np.random.default_rng(1)
     theta = np.array([40.0])
     u = forward.from_forces(theta, rng.standard_normal(forward.force_dofs)).x.array.copy()
-    X = forward.response_block(theta, rng.standard_normal((forward.force_dofs, columns)))
+    X = response_block(forward, theta, rng.standard_normal((forward.force_dofs, columns)))
     free = np.ones(len(X), bool)
     free[forward.clamped_boundary] = False  # the clamped rows are the modes themselves
     return u, X[free], forward.model

@@ -11,6 +11,9 @@ from fenics_elasto.mesh.builtin import build_scene
 from fenics_elasto.inverse.objective import InverseProblem
 from fenics_elasto.model.scene import load_scene
 from fenics_elasto.inverse.surrogate import MaterialSurrogate
+from fenics_elasto.model.responses import response_block, response_sensitivities
+from fenics_elasto.inverse.refinement import refine
+import fenics_elasto.inverse.profile as profile_module
 from targets import letter_case
 
 
@@ -45,12 +48,12 @@ def test_exact_at_snapshots_and_converging_between(inclusion):
     problem, W = inclusion
     surrogate = MaterialSurrogate(problem, W)
     probe = at(problem, 20.0, 0.35)
-    truth = problem.forward.response_block(probe, W)
+    truth = response_block(problem.forward, probe, W)
     errors = []
     for E in (3.0, 30.0, 300.0):
         for nu in (0.15, 0.3, 0.43):
             theta = at(problem, E, nu)
-            surrogate.add(theta, problem.forward.response_block(theta, W))
+            surrogate.add(theta, response_block(problem.forward, theta, W))
             J, _ = surrogate.response(theta)
             assert relative_error(J, problem.response(theta, W)) < 1e-8  # round-off of up to 36 directions
             assert surrogate.residual(theta) < 1e-8
@@ -66,7 +69,7 @@ def test_derivatives_are_those_of_the_surrogate(inclusion):
     problem, W = inclusion
     surrogate = MaterialSurrogate(problem, W)
     for E, nu in ((5.0, 0.2), (200.0, 0.42), (30.0, 0.3)):
-        surrogate.add(at(problem, E, nu), problem.forward.response_block(at(problem, E, nu), W))
+        surrogate.add(at(problem, E, nu), response_block(problem.forward, at(problem, E, nu), W))
     theta = at(problem, 17.0, 0.33)
     _, dJ = surrogate.response(theta)
     for k, h in enumerate(1e-4 * theta):
@@ -104,28 +107,28 @@ def test_sensitivities_are_derivatives_of_the_mode_fields(inclusion):
     in E); and a surrogate seeded at one point with them reaches far in E."""
     problem, W = inclusion
     theta = at(problem, 20.0, 0.3)
-    X = problem.forward.response_block(theta, W)
-    sensitivities = problem.forward.response_sensitivities(theta, X, order=2)
+    X = response_block(problem.forward, theta, W)
+    sensitivities = response_sensitivities(problem.forward, theta, X, order=2)
     assert len(sensitivities) == 2 + 3  # first order per constant, second per pair k <= l
     for k in range(2):
         h = 1e-4 * theta[k]
         step = np.eye(2)[k] * h
-        central = (problem.forward.response_block(theta + step, W) - problem.forward.response_block(theta - step, W)) / (2 * h)
+        central = (response_block(problem.forward, theta + step, W) - response_block(problem.forward, theta - step, W)) / (2 * h)
         assert relative_error(sensitivities[k], central) < 1e-6, k
     e = [key for _, key in problem.params.names].index("E")
     second_EE = sensitivities[2 + (0 if e == 0 else 2)]  # pairs (0, 0), (0, 1), (1, 1)
     h = 1e-2 * theta[e]
     step = np.eye(2)[e] * h
-    curvature = (problem.forward.response_block(theta + step, W) - 2 * X
-                 + problem.forward.response_block(theta - step, W)) / h**2
+    curvature = (response_block(problem.forward, theta + step, W) - 2 * X
+                 + response_block(problem.forward, theta - step, W)) / h**2
     assert relative_error(second_EE, curvature) < 1e-3  # the O(h^2) of the central difference
     seeded = MaterialSurrogate(problem, W)
-    seeded.add(theta, X, problem.forward.response_sensitivities(theta, X, order=2))
+    seeded.add(theta, X, response_sensitivities(problem.forward, theta, X, order=2))
     plain = MaterialSurrogate(problem, W)
     plain.add(theta, X)
     for E in (5.0, 80.0):
         probe = at(problem, E, 0.3)
-        truth = problem.observation.rows(problem.forward.response_block(probe, W))
+        truth = problem.observation.rows(response_block(problem.forward, probe, W))
         with_sensitivities = relative_error(seeded.response(probe)[0], truth)
         print(f"E = {E:g}: one snapshot {relative_error(plain.response(probe)[0], truth):.2e}, "
               f"with its sensitivities {with_sensitivities:.2e}")
@@ -172,23 +175,23 @@ def test_refined_on_nearby_factors_it_is_a_full_solve(inclusion):
     problem, W = inclusion
     forward = problem.forward
     theta0, theta1 = at(problem, 20.0, 0.3), at(problem, 45.0, 0.36)
-    X0 = forward.response_block(theta0, W)
+    X0 = response_block(forward, theta0, W)
     surrogate = MaterialSurrogate(problem, W)
-    surrogate.add(theta0, X0, forward.response_sensitivities(theta0, X0, order=2))
+    surrogate.add(theta0, X0, response_sensitivities(forward, theta0, X0, order=2))
     before = problem.model.factorizations
     factors = problem.model.solvers.closest(forward.coefficients(theta1)[0], forward.clamped_boundary)
     q = np.random.default_rng(2).standard_normal(W.shape[1])
     start = surrogate.residuals(theta1, q)[1]
-    steps = surrogate.refine(theta1, factors, q, tol=1e-9)
+    steps = refine(surrogate, theta1, factors, q, tol=1e-9)
     J, dJ = surrogate.response(theta1)
     assert problem.model.factorizations == before
-    X1 = forward.response_block(theta1, W)  # in full: a factorization at theta1
-    dX1 = forward.response_sensitivities(theta1, X1, order=1)
+    X1 = response_block(forward, theta1, W)  # in full: a factorization at theta1
+    dX1 = response_sensitivities(forward, theta1, X1, order=1)
     print(f"residuals before {start}, {steps} steps")
     assert steps is not None and 0 < steps <= 14 and np.all(start > 1e-6)
     dear = MaterialSurrogate(problem, W)  # a factorization cheaper than what refining still needs: it stops
-    dear.add(theta0, X0, forward.response_sensitivities(theta0, X0, order=2))
-    assert dear.refine(theta1, factors, q, tol=1e-9, budget=0.0) is None and dear.residuals(theta1, q)[1].max() > 1e-9
+    dear.add(theta0, X0, response_sensitivities(forward, theta0, X0, order=2))
+    assert refine(dear, theta1, factors, q, tol=1e-9, budget=0.0) is None and dear.residuals(theta1, q)[1].max() > 1e-9
     assert relative_error(J, problem.observation.rows(X1)) < 1e-7
     for k in range(2):
         assert relative_error(dJ[k] @ q, problem.observation.rows(dX1[k]) @ q) < 1e-7, k
@@ -220,13 +223,11 @@ def test_one_factorization_gives_the_answer_of_two(tmp_path, monkeypatch):
     problem = InverseProblem(load_scene(source, [f"target.surface='{target}'"]))
     rng = np.random.default_rng(1)
     W = np.linalg.qr(np.c_[problem.forward.on_loaded(estimate(problem).u), rng.standard_normal((problem.force_dofs, 5))])[0]
-    refine = MaterialSurrogate.refine
-    monkeypatch.setattr(MaterialSurrogate, "refine",
-                        lambda self, *args, budget=None, **kwargs: refine(self, *args, **kwargs))
+    monkeypatch.setattr(profile_module, "refine", lambda *args, budget=None, **kwargs: refine(*args, **kwargs))
     reduced = InverseProblem(problem.scene)
     borrowed = estimate(reduced, basis=W)
     assert not reduced.forward.borrows  # later solves of the problem factorize again
-    monkeypatch.setattr(MaterialSurrogate, "refine", lambda *args, **kwargs: None)  # no refinement: solve in full
+    monkeypatch.setattr(profile_module, "refine", lambda *args, **kwargs: None)  # no refinement: solve in full
     solved = estimate(InverseProblem(problem.scene), basis=W)
     print("factorizations", borrowed["factorizations"], solved["factorizations"])
     assert borrowed["factorizations"] == 1 < solved["factorizations"]

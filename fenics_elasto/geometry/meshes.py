@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+from scipy import sparse
 
 
 def triangle_edges(triangles: np.ndarray) -> np.ndarray:
@@ -36,3 +37,24 @@ def row_keys(rows: np.ndarray) -> np.ndarray:
     for column in rows.T:
         keys = keys * base + column
     return keys
+
+
+def rings(cells: np.ndarray, count: int, dim: int) -> tuple[sparse.csr_matrix, np.ndarray, np.ndarray]:
+    """(vertex adjacency, valence per vertex, rim) of ``count`` points joined by simplex
+    ``cells`` (segments in 2D, triangles in 3D): the umbrella Laplacian's parts --
+    adjacency @ x / valence - x is each vertex's offset to its neighbours' mean. Rim
+    vertices have no full ring of neighbours: open borders in 3D (e.g. pieces written
+    apart), polyline ends and junctions in 2D."""
+    n = count
+    edges = np.sort(cells, axis=1) if dim == 2 else triangle_edges(cells)
+    first, which = unique_rows(edges)
+    edges, uses = edges[first], np.bincount(which)
+    valence = np.bincount(edges.ravel(), minlength=n)
+    rim = np.zeros(n, bool)
+    rim[edges[uses < 2].ravel()] = dim == 3
+    if dim == 2:
+        rim[valence != 2] = True
+    ones = np.ones(len(edges))
+    adjacency = sparse.coo_matrix((np.r_[ones, ones], (np.r_[edges[:, 0], edges[:, 1]],
+                                                      np.r_[edges[:, 1], edges[:, 0]])), shape=(n, n)).tocsr()
+    return adjacency, valence, rim

@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from fenics_elasto.geometry.smoothing import noise
 from fenics_elasto.geometry.surface import Surface
 
 
@@ -29,7 +30,7 @@ class SurfaceTerm:
     def roughness(self) -> float:
         """The targets' own noise (Surface.noise), rms over the rows matched to each."""
         counts = np.bincount(self.surface_of, minlength=len(self.surfaces))
-        variance = sum(c * s.noise() ** 2 for c, s in zip(counts, self.surfaces) if c)
+        variance = sum(c * noise(s) ** 2 for c, s in zip(counts, self.surfaces) if c)
         return float(np.sqrt(variance / max(counts.sum(), 1)))
 
     def outward(self, y: np.ndarray) -> np.ndarray:

@@ -23,6 +23,7 @@ from fenics_elasto.util.errors import require
 from fenics_elasto.util.logs import log
 from fenics_elasto.geometry.surface import Surface
 from fenics_elasto.files.readers import read_landmarks, read_surface
+from fenics_elasto.geometry.smoothing import is_rough, noise, roughness, smoothed
 from fenics_elasto.geometry.targets import SurfaceTerm
 
 
@@ -96,16 +97,16 @@ class Misfit:
     def smoothing(self) -> dict | None:
         """The rough targets smoothed before matching: their noise before and after (the
         largest over the surfaces), or None when none was."""
-        smoothed = [s for s in self.surfaces if s.smoothed_from is not None]
-        if not smoothed:
+        done = [s for s in self.surfaces if s.smoothed_from is not None]
+        if not done:
             return None
-        return {"surfaces": len(smoothed), "noise_before": max(s.smoothed_from for s in smoothed),
-                "noise_after": max(s.noise() for s in smoothed)}
+        return {"surfaces": len(done), "noise_before": max(s.smoothed_from for s in done),
+                "noise_after": max(noise(s) for s in done)}
 
     def rough(self) -> bool:
         """A surface target rougher than its sampling (Surface.is_rough) as matched: then
         Phi* is jagged in the materials (the closest point is the nearest spike)."""
-        return any(s.is_rough() for s in self.surfaces)
+        return any(is_rough(s) for s in self.surfaces)
 
     def roughness(self) -> float:
         """The surface targets' own noise (0 without surfaces): the posterior's noise floor."""
@@ -188,11 +189,11 @@ def target_surface(path: Path, gdim: int, smooth: str) -> Surface:
     cannot tell from its noise -- smoothing rounded the letter A's and moved its nu by
     -3 % (0.5 % noise, 30 draws: -3.7 % against -0.6 % unsmoothed)."""
     surface = read_surface(path, gdim)
-    if smooth == "auto" and gdim == 3 and surface.is_rough():
-        smoothed = surface.smoothed()
-        log.info(f"note: {path.name}: rough (noise ~{surface.roughness():.3g}, mean edge {surface.mean_edge:.3g}): "
-                 f"smoothed before matching (noise left ~{smoothed.noise():.3g}); [target] smooth = \"off\" keeps it")
-        return smoothed
+    if smooth == "auto" and gdim == 3 and is_rough(surface):
+        smooth_surface = smoothed(surface)
+        log.info(f"note: {path.name}: rough (noise ~{roughness(surface):.3g}, mean edge {surface.mean_edge:.3g}): "
+                 f"smoothed before matching (noise left ~{noise(smooth_surface):.3g}); [target] smooth = \"off\" keeps it")
+        return smooth_surface
     return surface
 
 

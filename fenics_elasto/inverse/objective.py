@@ -22,6 +22,7 @@ from fenics_elasto.model.forward import BoundaryForward
 from fenics_elasto.inverse.misfit import Misfit, build_misfit, read_target_landmarks
 from fenics_elasto.model.observation import Observation
 from fenics_elasto.model.scene import Scene
+from fenics_elasto.model.responses import response_block
 
 
 @dataclass
@@ -134,7 +135,7 @@ class InverseProblem:
     def response(self, theta, basis: np.ndarray | None = None, rtol: float | None = None) -> np.ndarray:
         """J (n_obs, gdim, r): observed displacement per unit of each boundary mode
         (``rtol``: see forward.response_block)."""
-        return self.observation.rows(self.forward.response_block(theta, basis, rtol))
+        return self.observation.rows(response_block(self.forward, theta, basis, rtol))
 
     def distances(self, residual: np.ndarray) -> dict:
         return self.misfit.distances(residual)

@@ -27,8 +27,9 @@ import numpy as np
 from fenics_elasto.util.logs import log
 from fenics_elasto.inverse.inner import GaussNewton, InnerResult
 from fenics_elasto.util.interrupts import check_interrupt
-from fenics_elasto.inverse.surrogate import DERIVATIVE_TOL
+from fenics_elasto.inverse.refinement import DERIVATIVE_TOL, refine
 from fenics_elasto.inverse.linearisation import Linearisation, linearise
+from fenics_elasto.model.responses import response_block, response_sensitivities
 
 
 def envelope_gradient(misfit, fit, dJ: np.ndarray) -> np.ndarray:
@@ -60,9 +61,9 @@ class Profile:
         if self.surrogate is None:
             return self.problem.response(theta, self.basis)
         forward = self.problem.forward
-        X = forward.response_block(theta, self.basis)
+        X = response_block(forward, theta, self.basis)
         order = 2 if len(self.params) <= 2 else 1  # second order: 1 + n + n(n+1)/2 fields per mode
-        self.surrogate.add(theta, X, forward.response_sensitivities(theta, X, order))
+        self.surrogate.add(theta, X, response_sensitivities(forward, theta, X, order))
         return self.problem.observation.rows(X)
 
     def known(self, s) -> InnerResult | None:
@@ -109,11 +110,11 @@ class Profile:
         if self.surrogate is None or not forward.borrows:
             return None
         factors = forward.model.solvers.closest(forward.coefficients(theta)[0], forward.clamped_boundary)
-        steps = self.surrogate.refine(theta, factors, budget=factors.seconds) if factors is not None else None
+        steps = refine(self.surrogate, theta, factors, budget=factors.seconds) if factors is not None else None
         if steps is None:
             return None
         fit = self.inner.fit(self.surrogate.response(theta)[0])
-        more = self.surrogate.refine(theta, factors, fit.q, DERIVATIVE_TOL)  # the derivative along the optimum's controls
+        more = refine(self.surrogate, theta, factors, fit.q, DERIVATIVE_TOL)  # the derivative along the optimum's controls
         if more is None:
             return None
         log.info(f"  surrogate refined at {self.params.describe(theta)} on nearby factors ({steps} + {more} block "

@@ -21,13 +21,13 @@ Memory: V and M_g V, (1 + pieces) x DOFs x (size of V) numbers.
 
 from __future__ import annotations
 
-import time
 
 import numpy as np
 from mpi4py import MPI
 
 from fenics_elasto.model.stiffness import combine
 from fenics_elasto.inverse.objective import InverseProblem
+from fenics_elasto.model.responses import lift
 
 
 def affine_pieces(forward, params) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -62,17 +62,6 @@ def affine_pieces(forward, params) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return lead, scale, weights
 
 
-# refine: the relative equation residual that stands in for a solve. The answer's E comes
-# from the surrogate's optimum either way; at 1e-6 instead of 1e-8 sigma moved by 3e-8
-# (relative) on the phantom and 2 of 5-8 block steps were saved.
-REFINE_TOL = 1e-6
-# ... and for the modes' derivative along the optimum's controls (dJ/dtheta q): it enters
-# the outer gradient and the posterior's dy only, where a relative error e moves the
-# optimum by ~e sqrt(n_matched) of sigma (3e-3 at 1e-4) and sigma by e.
-DERIVATIVE_TOL = 1e-4
-REFINE_MAXITER = 20
-
-
 class MaterialSurrogate:
     """J(theta), dJ/dtheta and the equation residual from the snapshots added so far."""
 
@@ -84,10 +73,10 @@ class MaterialSurrogate:
         terms = problem.model.stiffness.terms
         self.terms = [terms[j] if np.count_nonzero(w) == 1 else combine(w, terms) for j, w in zip(self.lead, weights)]
         self._own = [M for M, w in zip(self.terms, weights) if np.count_nonzero(w) > 1]  # the sums made here
-        lift = self.forward.lift(basis)
-        self.G = lift.getDenseArray().copy()
+        modes = lift(self.forward, basis)
+        self.G = modes.getDenseArray().copy()
         self.MG = [problem.model.dofs.multiply(M, self.G) for M in self.terms]
-        lift.destroy()
+        modes.destroy()
         self.free = np.ones(len(self.G), bool)
         self.free[self.forward.clamped_boundary] = False
         self.matched_G = problem.observation.rows(self.G)
@@ -123,51 +112,11 @@ class MaterialSurrogate:
         """Add the mode fields X (owned rows, r) solved at theta, and their derivatives in
         the materials (forward.response_sensitivities: fields that vanish on the
         boundary); returns the directions kept."""
-        kept = self._extend(np.hstack([X - self.G, *sensitivities]))
+        kept = self.extend(np.hstack([X - self.G, *sensitivities]))
         self.snapshots.append(np.array(theta, float))
         return kept
 
-    def refine(self, theta, factors, q=None, tol: float = REFINE_TOL, maxiter: int = REFINE_MAXITER,
-               budget: float = np.inf) -> int | None:
-        """Make J(theta) (and with controls ``q``, dJ/dtheta q) exact to ``tol``
-        (``residuals``) without factorizing K(theta): add the equations' residuals at
-        theta, preconditioned by the ``factors`` of K at a nearby material value
-        (solvers.SolverCache.closest), to the space until they are that small. Galerkin
-        on the space so grown is a block Krylov method preconditioned by those factors:
-        the error falls at least like CG's, by (sqrt(k) - 1) / (sqrt(k) + 1) per step for
-        a spread k of the coefficients (0.13 at k = 1.7, the phantom's start E 30 to its
-        answer 51.5). Returns the steps (one block back-solve each), None if ``maxiter``
-        of them did not reach ``tol``, or once the steps still needed at the rate seen
-        would take longer than ``budget`` seconds (a factorization's: then it is cheaper)."""
-        start, last = time.perf_counter(), None
-        for step in range(maxiter + 1):
-            R, relative = self.residuals(theta, q)
-            worst = float(np.max(relative)) / tol
-            if worst <= 1:
-                return step
-            if step == maxiter or (last is not None and self._over_budget(start, step, worst / last, worst, budget)):
-                return None
-            last = worst
-            R = np.hstack([block for block, size in zip(R, relative) if size > tol])
-            B = self.problem.model.dofs.dense(R.shape[1])
-            B.getDenseArray()[:] = R
-            Z = self.problem.model.dofs.dense(R.shape[1])
-            factors.apply_factors(B, Z)
-            self._extend(Z.getDenseArray().copy())
-            B.destroy()
-            Z.destroy()
-        return None
-
-    def _over_budget(self, start: float, steps: int, rate: float, worst: float, budget: float) -> bool:
-        """Whether the steps still needed to bring the residual down by ``worst`` at
-        ``rate`` per step, each as long as the ``steps`` taken since ``start``, would
-        take longer than ``budget`` seconds (what is spent is spent either way; the
-        slowest rank's clock, so that all ranks decide alike)."""
-        spent = self.comm.allreduce(time.perf_counter() - start, op=MPI.MAX)
-        needed = np.inf if rate >= 1 else np.log(worst) / -np.log(rate)
-        return spent / steps * needed > self.comm.allreduce(budget, op=MPI.MAX)
-
-    def _extend(self, Y: np.ndarray) -> int:
+    def extend(self, Y: np.ndarray) -> int:
         """Add the directions of Y (owned rows) that V does not hold yet; zero on the
         clamped DOFs. Returns how many were kept."""
         Y[~self.free] = 0.0

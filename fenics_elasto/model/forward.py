@@ -16,7 +16,6 @@ from __future__ import annotations
 from contextlib import contextmanager
 
 import numpy as np
-from petsc4py import PETSc
 
 from dolfinx import fem
 
@@ -126,72 +125,3 @@ class BoundaryForward:
                 columns.append(du.x.petsc_vec.array.copy())
         self.forward_solves += len(columns)
         return np.stack(columns, axis=1) if columns else np.zeros((len(u.x.petsc_vec.array), 0))
-
-    def response_sensitivities(self, theta, X: np.ndarray, order: int = 2) -> list[np.ndarray]:
-        """Derivatives of the mode fields X(theta) (response_block) along the estimated
-        constants, on the factorization X was solved with (block back-solves only):
-
-            K dX_k  = -D_k X                    (D_k = dK/dtheta_k)
-            K dX_kl = -(D_k dX_l + D_l dX_k)     (order 2, k <= l)
-
-        on the free DOFs, zero on the loaded and fixed ones (the boundary modes do not
-        depend on the materials). The second order leaves out d2K/dtheta2 -- exact along
-        E, whose coefficients are linear in it; for nu it only shapes the space the
-        surrogate searches (surrogate.py), which stays exact at every full solve."""
-        c, dc = self.coefficients(theta)
-        factor = self.model.factorize(c, self.clamped_boundary)
-        D = [self.model.stiffness.matrix(row) for row in dc]
-
-        def solve(*products) -> np.ndarray:  # -K^{-1} sum D Y, with the Dirichlet rows zero
-            block = self.model.dofs.dense(X.shape[1])
-            rhs = block.getDenseArray()
-            for M, Y in products:
-                rhs -= self.model.dofs.multiply(M, Y)
-            rhs[self.clamped_boundary] = 0.0
-            out = self.model.dofs.dense(X.shape[1])
-            factor.solve_many(block, out)
-            values = out.getDenseArray().copy()
-            block.destroy()
-            out.destroy()
-            return values
-
-        first = [solve((Dk, X)) for Dk in D]
-        second = [solve((D[k], first[j]), (D[j], first[k]))
-                  for k in range(len(D)) for j in range(k, len(D))] if order >= 2 else []
-        for M in D:
-            M.destroy()
-        self.forward_solves += (len(first) + len(second)) * X.shape[1]
-        return first + second
-
-    def lift(self, basis: np.ndarray | None = None) -> PETSc.Mat:
-        """The boundary modes as fields: W on the loaded DOFs, zero elsewhere (dense, owned rows)."""
-        W = np.eye(self.force_dofs) if basis is None else basis
-        r = W.shape[1]
-        G = self.model.dofs.dense(r)
-        rows = self.loaded.dofs(self.model.dofs.bs).ravel()
-        G.getDenseArray()[rows] = self.loaded.local(W.reshape(self.loaded.total, self.gdim * r)).reshape(-1, r)
-        return G
-
-    def response_block(self, theta, basis: np.ndarray | None = None, rtol: float | None = None) -> np.ndarray:
-        """X (owned DOFs, r): the field of each boundary mode (W: force_dofs x r; None: all).
-
-        The r right-hand sides [-K W on free rows, W on the loaded rows] go through the
-        one factorization of K_D as a dense block (MatMatSolve). Inside ``borrowing()`` a single
-        mode (reduction.missing_wall_motion's) is a single solve on nearby factors, to
-        ``rtol`` if given (a diagnostic needs fewer CG steps); a block pays a factorization
-        (CG would take each column alone).
-        """
-        c = self.coefficients(theta)[0]
-        G = self.lift(basis)
-        K = self.model.stiffness.matrix(c)
-        rhs = K.matMult(G)
-        block = rhs.getDenseArray()
-        block *= -1.0
-        block[self.clamped_boundary] = G.getDenseArray()[self.clamped_boundary]
-        X = self.model.dofs.dense(G.getSize()[1])
-        with self.model.solver(c, self.clamped_boundary, self._borrow and G.getSize()[1] == 1, rtol) as factor:
-            factor.solve_many(rhs, X)
-        out = X.getDenseArray().copy()
-        for M in (G, K, rhs, X):
-            M.destroy()
-        return out

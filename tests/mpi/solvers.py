@@ -13,6 +13,7 @@ from fenics_elasto.model.elasticity import ElasticModel
 from fenics_elasto.model.forward import BoundaryForward
 from fenics_elasto.model.scene import load_scene
 from fenics_elasto.model.solvers import SolverSettings
+from fenics_elasto.model.responses import response_block
 
 problem, method, out = sys.argv[1], sys.argv[2], sys.argv[3]
 scene = load_scene(problem, ["degree=1"])
@@ -22,7 +23,7 @@ theta = np.array([40.0])
 forces = rng.standard_normal(forward.force_dofs)
 basis = rng.standard_normal((forward.force_dofs, 3))
 u = forward.from_forces(theta, forces)
-X = forward.response_block(theta, basis)
+X = response_block(forward, theta, basis)
 f = forward.load(forces)  # kept alive: its petsc_vec borrows its memory
 near = forward.model.solve(forward.coefficients(2 * theta)[0], forward.clamped, f.x.petsc_vec, nearby=True)
 nodes = forward.model.dofs.node_set(["prostate_surface"])
