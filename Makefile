@@ -65,9 +65,11 @@ bench-adjoint: $(STAMP)
 	$(BENCH)/bin/python -m pip install -q pyadjoint-ad h5py
 	PYTHONPATH=$(CURDIR) $(BENCH)/bin/python benchmarks/gradient_taped.py
 
-# ruff: pyflakes, pycodestyle, pyupgrade and bugbear checks (configured in pyproject.toml).
+# ruff: pyflakes, pycodestyle, pyupgrade and bugbear checks; mypy over the package
+# (both configured in pyproject.toml).
 lint: $(STAMP)
 	$(PY) -m ruff check fenics_elasto tests benchmarks demos
+	$(PY) -m mypy fenics_elasto
 
 clean:
 	rm -rf $(VENV) $(BENCH) out .pytest_cache

@@ -13,6 +13,7 @@ import fenics_elasto  # noqa: F401  (imports dolfinx_solver first)
 from fenics_elasto.mesh.builtin import build_scene
 
 ROOT = Path(__file__).resolve().parents[1]
+TESTS = Path(__file__).resolve().parent  # the helpers (independent.py, targets.py, mpi/) live here
 BIN = Path(sys.executable).parent
 
 

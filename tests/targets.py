@@ -1,8 +1,10 @@
-"""Synthetic targets for the inverse tests, always made on a different, finer mesh."""
+"""Synthetic targets for the inverse tests, always made on a different, finer mesh; and
+the Taylor test's rates, which the gradient tests share."""
 
 from pathlib import Path
 
 from fenics_elasto.files.writers import write_matched_surfaces
+from fenics_elasto.inverse.verification import taylor_test
 from fenics_elasto.mesh.builtin import build_scene
 from fenics_elasto.model.scene import load_scene
 from fenics_elasto.model.simulate import simulate, write_landmarks_for
@@ -35,3 +37,10 @@ def letter_case(base: Path, fine_size: float, nu: float):
 def landmarks_for(source_problem: Path, sim, path: Path, noise: float = 0.0, seed: int = 0) -> Path:
     """Exact node correspondence: the fine solution probed at the source's matched nodes."""
     return write_landmarks_for(load_scene(source_problem), sim.u, path, noise, seed)
+
+
+def taylor_rates(phi, x, direction, gradient, eps0):
+    """Rates of |phi(x + e d) - phi(x) - e g.d| as e halves (2 for a correct gradient)."""
+    result = taylor_test(phi, x, direction, gradient, eps0)
+    assert not result.at_roundoff, result
+    return result.rates, result.remainders

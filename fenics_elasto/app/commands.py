@@ -153,6 +153,7 @@ def write_estimate(folder, problem, result) -> None:
     write_solution(folder, scene, result.u, target=target, title=caption(result.record, folder.path.name, units(scene)))
     points = problem.loaded.gather(problem.loaded.coords)
     if scene.comm.rank == 0:
+        assert target is not None
         target.save(folder.path_for("target.vtp"))
         plot_convergence(result.record, folder.path_for("convergence.png"))
         folder.write_text("forces.csv", point_csv(points, result.forces.reshape(len(points), -1), "f"))

@@ -27,8 +27,9 @@ def write_solution(folder, scene, u: fem.Function, target=None, title: str = "")
         scene.mesh.topology.create_connectivity(tdim - 1, tdim)
         context = gather_entities(u, tdim - 1, dolfinx.mesh.exterior_facet_indices(scene.mesh.topology), pieces=1)
     if scene.comm.rank == 0:
+        assert matched is not None and context is not None  # gathered on rank 0
         data = {g: matched[g] if g in matched else data[g] for g in shown}
-        deformed = {g: polydata(*d) for g, d in data.items()}
-        reference = {g: polydata(*d, deformed=False) for g, d in data.items()}
+        deformed = {g: polydata(*d) for g, d in data.items() if d is not None}
+        reference = {g: polydata(*d, deformed=False) for g, d in data.items() if d is not None}
         render(folder.path_for("screenshot.png"), deformed, reference, polydata(*context), target, title,
                dim=scene.gdim, fixed=scene.fixed, units=scene.config.get("units") or "")

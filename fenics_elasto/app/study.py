@@ -39,10 +39,10 @@ class Motion:
     ripple: dict | None = None
 
     def table(self) -> dict:
-        out = {"scale": float(self.scale)}
+        out: dict[str, object] = {"scale": float(self.scale)}
         for key in ("value", "gradient", "center", "ripple"):
             if getattr(self, key) is not None:
-                out[key] = np.asarray(getattr(self, key), float).tolist() if key != "ripple" else dict(self.ripple)
+                out[key] = np.asarray(getattr(self, key), float).tolist() if key != "ripple" else dict(getattr(self, key))
         return out
 
 
@@ -62,8 +62,9 @@ class TargetFiles:
         """``[target]`` for load_scene: the surfaces (and the landmarks if there are any,
         unless ``landmarks`` says otherwise; ``landmarks=True`` alone: landmarks only)."""
         use = self.landmarks is not None if landmarks is None else landmarks
-        table = {} if landmarks is True else {"surfaces": {g: str(p.resolve()) for g, p in self.surfaces.items()}}
-        if use:
+        table: dict[str, object] = {} if landmarks is True else {
+            "surfaces": {g: str(p.resolve()) for g, p in self.surfaces.items()}}
+        if use and self.landmarks is not None:
             table["landmarks"] = str(self.landmarks.resolve())
         return {"target": table}
 
@@ -137,7 +138,7 @@ TRUE_E = (25.0, 50.0, 75.0)
 SIZE, FINE = 1.6, 1.3  # element sizes (cm, --size) of the source patients and of the target meshes
 
 
-def run_case(source: Path, target: dict, basis=None, options=None) -> dict:
+def run_case(source: Path, target, basis=None, options=None) -> dict:
     """One estimate (``target``: settings, e.g. ``TargetFiles.settings()``); result.json fields + seconds."""
     problem = InverseProblem(load_scene(source, target))
     start = time.perf_counter()
@@ -177,7 +178,7 @@ def speedup_table(rows, force_dofs: int, rank: int) -> list[str]:
     return lines
 
 
-def rank_sweep(source: Path, target: str, W: np.ndarray, ranks, E: float, known=None):
+def rank_sweep(source: Path, target: dict, W: np.ndarray, ranks, E: float, known=None):
     """(rank, E error, inner iterations, seconds) of the reduced estimate at each rank
     (``known``: rank -> result already computed on this target)."""
     sweep = []

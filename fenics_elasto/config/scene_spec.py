@@ -10,7 +10,7 @@ from fenics_elasto.config.toml import apply_overrides, read_toml
 
 def _check_spec(spec: dict, where: Where) -> dict:
     """Group names must not clash; a box or ellipsoid needs something to surround."""
-    owners = {}
+    owners: dict[str, str] = {}
 
     def claim(name, at: Where, role: str):
         if name in owners:

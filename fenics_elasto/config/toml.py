@@ -89,12 +89,14 @@ def _set(config: dict, keys: list, value, schema: Table, where: Where) -> None:
         if last:
             table[key] = value
             return
-        inner = table.get(key)
+        inner: dict | None = table.get(key)
         if inner is None:
             inner = {}
         elif not isinstance(inner, dict):
-            inner = node.promote(inner) if node.table() is not None else None
-            if inner is None:
+            promoted = node.promote(inner) if node.table() is not None else None
+            if promoted is None:
                 here.fail(f"is {given(table[key])}, not a table; it has no key {key_text(keys[depth + 1])}")
+            inner = promoted
         table[key] = inner
+        assert inner is not None
         table, where = inner, here

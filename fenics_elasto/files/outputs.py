@@ -156,6 +156,7 @@ def _take_lock(folder: Path) -> str | None:
                        "start_time": time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(now)),
                        "command": " ".join(sys.argv)}, f)
         return note
+    raise AssertionError("unreachable: the second attempt returns or raises")
 
 
 def _read_lock(lock: Path) -> dict | None:

@@ -68,7 +68,7 @@ def write_landmarks(path: Path, points: np.ndarray, displaced: np.ndarray) -> No
     write_point_csv(path, points, displaced, "X")
 
 
-def write_matched_surfaces(out: Path, scene, u: fem.Function, pieces: int | None = None, place=None) -> dict:
+def write_matched_surfaces(out: Path, scene, u: fem.Function, pieces: int | None = None, place=None) -> dict | None:
     """``surface_<group>.vtp`` per matched group and ``surface.vtp`` with all (deformed);
     returns the groups' surfaces (rank 0; None elsewhere).
 
@@ -88,6 +88,7 @@ def write_matched_surfaces(out: Path, scene, u: fem.Function, pieces: int | None
         return None
     out.mkdir(parents=True, exist_ok=True)
     for g, group in data.items():  # lz4: 5x faster than VTK's default zlib, files 30 % larger
+        assert group is not None  # gathered on rank 0
         polydata(*group).save(place(f"surface_{g}.vtp"), compression="lz4")
     if union is not None:
         polydata(*union).save(place("surface.vtp"), compression="lz4")

@@ -12,6 +12,8 @@ equal to 1e-15.
 
 from __future__ import annotations
 
+from typing import Any
+
 import igl
 import numpy as np
 
@@ -37,11 +39,11 @@ class Surface:
         self.points = np.ascontiguousarray(points, dtype=np.float64)
         self.cells = np.ascontiguousarray(cells, dtype=np.int64)
         self.dim = self.points.shape[1]
-        self._tree = None  # libigl AABB tree (3D), built on the first query
-        self._last = None  # (x, simplex, cp) of the latest query: the curvature rows ask again at the same x
-        self.smoothed_from = None  # the roughness of the surface smoothing.smoothed made this one from
+        self._tree: Any = None  # libigl AABB tree (3D), built on the first query
+        self._last: tuple | None = None  # (x, simplex, cp) of the latest query: the curvature rows ask again at the same x
+        self.smoothed_from: float | None = None  # the roughness of the surface smoothing.smoothed made this one from
         self.noise_gain = 1.0  # smoothing.smoothed: the share of white noise its filter let through
-        self._outward = None  # outward(): per face the unit normal out of the enclosed volume, or False (open, 2D)
+        self._outward: Any = None  # outward(): per face the unit normal out of the enclosed volume, or False (open, 2D)
 
         corners = self.points[self.cells]
         if self.dim == 2:

@@ -30,8 +30,8 @@ class SurfaceTerm:
     def roughness(self) -> float:
         """The targets' own noise (Surface.noise), rms over the rows matched to each."""
         counts = np.bincount(self.surface_of, minlength=len(self.surfaces))
-        variance = sum(c * noise(s) ** 2 for c, s in zip(counts, self.surfaces) if c)
-        return float(np.sqrt(variance / max(counts.sum(), 1)))
+        variance = sum(float(c) * noise(s) ** 2 for c, s in zip(counts, self.surfaces) if c)
+        return float(np.sqrt(variance / max(int(counts.sum()), 1)))
 
     def outward(self, y: np.ndarray) -> np.ndarray:
         """(n, gdim) the outward normal of each row's closed target surface at its closest

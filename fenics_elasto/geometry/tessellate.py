@@ -147,7 +147,8 @@ def _lattice_for(mesh, dim: int, nodes: np.ndarray, curved: bool, pieces: int) -
     return _quadratic_order(nodes, mesh.geometry.x), triangle_lattice(pieces)
 
 
-def gather_entities(u: dolfinx.fem.Function, dim: int, entities: np.ndarray, pieces: int | None = None):
+def gather_entities(u: dolfinx.fem.Function, dim: int, entities: np.ndarray,
+                    pieces: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """(points, cells, displacement) of owned ``entities`` of dimension ``dim`` on rank 0
     (None elsewhere), points padded to 3D, shared by construction (module docstring).
 

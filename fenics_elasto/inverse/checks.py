@@ -10,6 +10,7 @@ from scipy.spatial import cKDTree
 
 from fenics_elasto.util.errors import UserError, require
 from fenics_elasto.inverse.inner import InnerResult
+from fenics_elasto.geometry.targets import SurfaceTerm
 from fenics_elasto.inverse.objective import InverseProblem
 from fenics_elasto.inverse.options import Options
 
@@ -85,7 +86,9 @@ def check_extent(problem: InverseProblem) -> list[str]:
     out, misfit, spec = [], problem.misfit, problem.scene.config["target"] or {}
     matched = problem.scene.matched
     for rows, term in zip(misfit.slices, misfit.terms):
-        for i, surface in enumerate(getattr(term, "surfaces", [])):
+        if not isinstance(term, SurfaceTerm):
+            continue
+        for i, surface in enumerate(term.surfaces):
             name = f"target.surface ({spec['surface']})" if spec.get("surface") else \
                 f"target.surfaces.{matched[i]} ({spec['surfaces'][matched[i]]})"
             own = problem.observation.points[rows][term.surface_of == i]

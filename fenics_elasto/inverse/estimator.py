@@ -30,6 +30,7 @@ from fenics_elasto.geometry.matching import match_surface
 from fenics_elasto.geometry.targets import SurfaceTerm
 from fenics_elasto.inverse.checks import check_determined, check_extent, check_overlap, target_warnings
 from fenics_elasto.inverse.inner import LBFGS, GaussNewton, InnerResult
+from fenics_elasto.inverse.misfit import PointTerm
 from fenics_elasto.inverse.objective import Evaluation, InverseProblem
 from fenics_elasto.inverse.options import Options
 from fenics_elasto.inverse.outer import minimize_on_surrogate, minimize_profile, scan_grid, surrogate_scan
@@ -93,7 +94,9 @@ def surface_matched_start(problem: InverseProblem) -> np.ndarray:
         u = match_surface(nodes, problem.node_groups(), term)
     else:
         rows = problem.misfit.landmark_rows()
-        moved = problem.misfit.terms[-1].points - problem.observation.points[rows]
+        landmarks = problem.misfit.terms[-1]
+        assert isinstance(landmarks, PointTerm)  # a target of landmarks alone
+        moved = landmarks.points - problem.observation.points[rows]
         u = moved[cKDTree(problem.observation.points[rows]).query(nodes)[1]]
     return problem.forward.on_loaded(problem.observation.node_field(u))
 
@@ -227,7 +230,9 @@ def _run(estimator: Estimator, warnings: list[str], extent_warnings: list[str], 
         estimator.uncertainty.linearise_answer(theta, best)
     post = estimator.uncertainty.posterior(best)
     if post is not None:  # the final answer's only: the set-up check's posterior has no use for it
-        post.offset = target_offset(problem.misfit, estimator.profile.linearisation(best), best.evaluation)
+        lin = estimator.profile.linearisation(best)
+        assert lin is not None  # the posterior is made from it
+        post.offset = target_offset(problem.misfit, lin, best.evaluation)
     if post is not None and not interrupted:
         estimator.uncertainty.profile_likelihood_interval(post)
     uncertainty_seconds = time.perf_counter() - clock
@@ -243,7 +248,7 @@ def _run(estimator: Estimator, warnings: list[str], extent_warnings: list[str], 
                 "controls (profiling them out would take another inner fit's solves)"}
     if post is not None:  # what the answer's posterior, offset and profile interval cost
         record["uncertainty"]["seconds"] = round(uncertainty_seconds, 3)
-    smoothing = problem.misfit.smoothing() if problem.misfit is not None else None
+    smoothing = problem.misfit.smoothing()
     if smoothing is not None:
         record["uncertainty"]["target_smoothed"] = smoothing
     if post is not None:

@@ -17,6 +17,7 @@ included (the envelope theorem makes dPhi*/dtheta the partial derivative there).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -64,7 +65,7 @@ class GaussNewton:
         self.points = problem.observation.points
         self.q0 = q0
         self.anchor = anchor
-        self.alpha = None  # fixed on the first fit: alpha = anchor x mean curvature of the data term
+        self.alpha: float | None = None  # fixed on the first fit: alpha = anchor x mean curvature of the data term
         self.maxiter = maxiter
         self.tol = tol
 
@@ -76,21 +77,23 @@ class GaussNewton:
         flat = J.reshape(n * gdim, r)
         misfit = self.misfit
 
-        def evaluate(q):
-            y = self.points + (flat @ q).reshape(n, gdim)
-            residual = misfit.residual(y)
-            return y, residual, misfit.cost(residual), 0.5 * self.alpha * float(np.sum((q - self.q0) ** 2))
-
         if self.alpha is None:
             A = self._curvature_rows(J, self.points + (flat @ self.q0).reshape(n, gdim))
             self.alpha = self.anchor * float(np.mean(np.sum(A**2, axis=0)))
+        alpha = self.alpha
+
+        def evaluate(q):
+            y = self.points + (flat @ q).reshape(n, gdim)
+            residual = misfit.residual(y)
+            return y, residual, misfit.cost(residual), 0.5 * alpha * float(np.sum((q - self.q0) ** 2))
+
         q = (self.q0 if start is None else start).copy()
         y, residual, phi, prior = evaluate(q)
         damping, nit, converged = 1e-3, 0, False
         for nit in range(1, self.maxiter + 1):  # noqa: B007 (nit is reported after the loop)
             A = self._curvature_rows(J, y)
-            H = A.T @ A + self.alpha * np.eye(r)
-            grad = flat.T @ misfit.gradient(residual).ravel() + self.alpha * (q - self.q0)
+            H = A.T @ A + alpha * np.eye(r)
+            grad = flat.T @ misfit.gradient(residual).ravel() + alpha * (q - self.q0)
             # The most the Gauss-Newton model promises (the undamped step's decrease, grad H^-1
             # grad / 2): below tol, converged without trying a step (the phantom's fits spent
             # a closest-point query, or a cascade of damped ones, on learning that).
@@ -132,19 +135,20 @@ class LBFGS:
 
     def __init__(self, problem: InverseProblem, forces: bool, maxiter: int, tol: float):
         self.problem = problem
-        self.evaluate = problem.evaluate_forces if forces else problem.evaluate_displacement
+        self.evaluate: Callable[..., Evaluation] = problem.evaluate_forces if forces else problem.evaluate_displacement
         self.maxiter = maxiter
         self.tol = tol
         self.control_scale = 1.0
         self.phi_scale = 1.0
 
     def solve(self, theta, start: np.ndarray) -> InnerResult:
-        cache = {}
+        cache: dict[bytes, Evaluation] = {}
 
         def fun(z):
             ev = self.evaluate(theta, z * self.control_scale, gradient=True)
             cache.clear()
             cache[z.tobytes()] = ev
+            assert ev.grad_controls is not None  # asked for
             return ev.phi / self.phi_scale, ev.grad_controls * (self.control_scale / self.phi_scale)
 
         res = minimize(fun, start / self.control_scale, jac=True, method="L-BFGS-B",

@@ -66,12 +66,14 @@ class ProfiledLinearisation(Linearisation):
     own: np.ndarray | None = None  # diag(A_s^T A_s) before profiling
 
     def profiled(self) -> tuple[np.ndarray, np.ndarray]:
+        assert self.schur is not None
         return self.A_s, self.schur
 
     def fitted_controls(self) -> float:
         return self.controls_hat
 
     def sensitivity(self) -> np.ndarray:
+        assert self.own is not None
         return self.own
 
 

@@ -14,8 +14,10 @@ Weights: surface rows 1; landmark rows ``landmark_weight`` (see ``landmark_weigh
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 
@@ -50,16 +52,24 @@ class Unobserved:
         return np.zeros(y.shape + (y.shape[1],))
 
 
+class Term(Protocol):
+    """What the misfit asks of a block of rows' target."""
+
+    def closest(self, y: np.ndarray) -> np.ndarray: ...
+
+    def curvature_directions(self, y: np.ndarray) -> np.ndarray: ...
+
+
 class Misfit:
     """Phi over consecutive blocks of observation rows, each with its term and weight."""
 
-    def __init__(self, blocks: list[tuple[int, object, float]]):
+    def __init__(self, blocks: Sequence[tuple[int, Term, float]]):
         """``blocks``: (row count, SurfaceTerm | PointTerm, weight) in row order."""
         self.terms = [term for _, term, _ in blocks]
         bounds = np.cumsum([0] + [count for count, _, _ in blocks])
         self.slices = [slice(a, b) for a, b in zip(bounds[:-1], bounds[1:])]
         self.weights = np.concatenate([np.full(count, weight, float) for count, _, weight in blocks] or [np.zeros(0)])
-        self._roughness = None
+        self._roughness: float | None = None
 
     @property
     def count(self) -> int:
@@ -100,7 +110,7 @@ class Misfit:
         done = [s for s in self.surfaces if s.smoothed_from is not None]
         if not done:
             return None
-        return {"surfaces": len(done), "noise_before": max(s.smoothed_from for s in done),
+        return {"surfaces": len(done), "noise_before": max(float(s.smoothed_from or 0.0) for s in done),
                 "noise_after": max(noise(s) for s in done)}
 
     def rough(self) -> bool:
@@ -112,7 +122,7 @@ class Misfit:
         """The surface targets' own noise (0 without surfaces): the posterior's noise floor."""
         if self._roughness is None:  # a pass over every target vertex: once
             self._roughness = max([t.roughness() for t in self.terms if isinstance(t, SurfaceTerm)], default=0.0)
-        return self._roughness
+        return float(self._roughness)
 
     def statistical_rows(self, y: np.ndarray, residual: np.ndarray) -> np.ndarray:
         """(n, gdim, gdim) sqrt(w) C_l of the noise model the posterior uses: a surface point
@@ -207,7 +217,7 @@ def build_misfit(scene, node_groups: np.ndarray, landmarks: tuple | None) -> Mis
     where = f"{scene.path}: [target]"
     require(spec is not None, f"{where}: missing; give surface, surfaces and/or landmarks")
     base = scene.path.parent
-    blocks = []
+    blocks: list[tuple[int, Term, float]] = []
     if spec["surface"] is not None:
         blocks.append((len(node_groups), SurfaceTerm([target_surface(base / spec["surface"], scene.gdim, spec["smooth"])],
                                                      np.zeros(len(node_groups), int)), 1.0))

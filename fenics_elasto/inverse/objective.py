@@ -12,6 +12,7 @@ theta are the estimated constants in the order of ``Scene.estimated()``.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 from functools import cached_property
 
 import numpy as np
@@ -38,7 +39,7 @@ class Evaluation:
 class InverseProblem:
     """A scene's forward model, its observation and the misfit to its target."""
 
-    def __init__(self, scene: Scene, model: ElasticModel | None = None, target: Misfit | bool | None = None):
+    def __init__(self, scene: Scene, model: ElasticModel | None = None, target: Misfit | Literal[False] | None = None):
         """``target``: a Misfit, None to read the scene's [target], False for none (training)."""
         require(scene.matched, f"{scene.path}: boundary.matched is empty: nothing to compare with the target")
         self.scene = scene
@@ -48,7 +49,18 @@ class InverseProblem:
         self.gdim = scene.gdim
         landmarks = read_target_landmarks(scene) if target is None else None
         self.observation = Observation(self.model, scene, None if landmarks is None else landmarks[0])
-        self.misfit = build_misfit(scene, self.node_groups(), landmarks) if target is None else target or None
+        self._misfit = build_misfit(scene, self.node_groups(), landmarks) if target is None else target or None
+
+    @property
+    def misfit(self) -> Misfit:
+        """The misfit to the target (a problem made for training, ``target=False``, has none)."""
+        if self._misfit is None:
+            raise ValueError("this InverseProblem was made without a target (target=False)")
+        return self._misfit
+
+    @property
+    def has_target(self) -> bool:
+        return self._misfit is not None
 
     # --- sizes and groups
 

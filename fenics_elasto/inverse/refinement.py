@@ -48,10 +48,10 @@ def refine(surrogate: MaterialSurrogate, theta, factors, q=None, tol: float = RE
         if step == maxiter or (last is not None and _over_budget(surrogate.comm, start, step, worst / last, worst, budget)):
             return None
         last = worst
-        R = np.hstack([block for block, size in zip(R, relative) if size > tol])
-        B = surrogate.problem.model.dofs.dense(R.shape[1])
-        B.getDenseArray()[:] = R
-        Z = surrogate.problem.model.dofs.dense(R.shape[1])
+        kept = np.hstack([block for block, size in zip(R, relative) if size > tol])
+        B = surrogate.problem.model.dofs.dense(kept.shape[1])
+        B.getDenseArray()[:] = kept
+        Z = surrogate.problem.model.dofs.dense(kept.shape[1])
         factors.apply_factors(B, Z)
         surrogate.extend(Z.getDenseArray().copy())
         B.destroy()

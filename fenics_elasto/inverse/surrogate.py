@@ -46,7 +46,7 @@ def affine_pieces(forward, params) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     vectors = np.vstack([np.vstack(forward.coefficients(theta)) for theta in thetas])  # (rows, terms)
     norms = np.linalg.norm(vectors, axis=0)
     groups: list[list[int]] = []
-    for j in np.flatnonzero(norms > 0):
+    for j in map(int, np.flatnonzero(norms > 0)):
         unit = vectors[:, j] / norms[j]
         for group in groups:
             if np.allclose(unit, vectors[:, group[0]] / norms[group[0]], rtol=0, atol=1e-10):
@@ -86,7 +86,7 @@ class MaterialSurrogate:
         self.VMV = [np.zeros((0, 0)) for _ in self.terms]
         self.VMG = [np.zeros((0, r)) for _ in self.terms]
         self.matched_V = problem.observation.rows(self.V)
-        self.snapshots = []  # theta of every snapshot added
+        self.snapshots: list[np.ndarray] = []  # theta of every snapshot added
 
     def destroy(self) -> None:
         for M in self._own:

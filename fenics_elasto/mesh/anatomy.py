@@ -218,6 +218,7 @@ def nest(shells: list[Shell], gap: float) -> list[int | None]:
             require(outer is None, f"the body ({shell.label}) lies inside {outer.label if outer else ''}")
             continue
         require(outer is not None, f"{shell.label} lies outside the {shells[0].label}")
+        assert outer is not None
         require(outer.role != "cavity", f"{shell.label} lies inside {outer.label}: nothing can be inside a cavity")
         require(not (shell.role == "cavity" and outer.role == "region"),
                 f"{shell.label} lies inside {outer.label}: a cavity must be surrounded by the body's material")
@@ -268,8 +269,8 @@ def _reparametrise(gmsh, shells: list[Shell], starts: np.ndarray, patches: list[
     single map needs it. Returns, per shell, its surfaces, and per surface its patch bits."""
     gmsh.model.mesh.classifySurfaces(math.pi, True, True, math.pi)
     gmsh.model.mesh.createGeometry()
-    owned = [[] for _ in shells]
-    bits = {}
+    owned: list[list[int]] = [[] for _ in shells]
+    bits: dict[int, int] = {}
     for _, tag in gmsh.model.getEntities(2):
         nodes = gmsh.model.mesh.getElementsByType(2, tag)[1].astype(np.int64).reshape(-1, 3)
         k = int(np.searchsorted(starts, nodes[0, 0], side="right")) - 1
@@ -295,7 +296,8 @@ def _add_volumes(gmsh, shells: list[Shell], parents: list, owned: list) -> list[
 
 
 def _add_groups(gmsh, shells: list[Shell], volumes: list, owned: list, bits: dict, patches: list[Patch]) -> None:
-    cells, facets = {}, {"outer": list(owned[0])}
+    cells: dict[str, list[int]] = {}
+    facets = {"outer": list(owned[0])}
     for shell, volume, tags in zip(shells, volumes, owned):
         if shell.role != "cavity":
             cells.setdefault(shell.name, []).append(volume)
@@ -393,8 +395,8 @@ def _curve_features(gmsh, shell: Shell, surfaces: list[int], position: np.ndarra
     import igl
 
     curves = {abs(tag) for _, tag in gmsh.model.getBoundary([(2, t) for t in surfaces], combined=False, oriented=False)}
-    lines = [gmsh.model.mesh.getElementsByType(8, c)[1].reshape(-1, 3) for c in curves]
-    lines = np.vstack(lines).astype(np.int64) if lines else np.empty((0, 3), np.int64)
+    per_curve = [gmsh.model.mesh.getElementsByType(8, c)[1].reshape(-1, 3) for c in curves]
+    lines = np.vstack(per_curve).astype(np.int64) if per_curve else np.empty((0, 3), np.int64)
     corners = position[lines[:, :2]].reshape(-1, 3)
     gap = np.sqrt(igl.point_mesh_squared_distance(corners, shell.points, shell.features)[0]).reshape(-1, 2)
     on_feature = (gap < 1e-9 * np.linalg.norm(np.ptp(shell.points, axis=0))).all(axis=1)
@@ -523,8 +525,10 @@ def build_scene_from_spec(spec_path, out, size: float | None = None) -> Path:
     patches = [Patch(name, np.array(p["side"]["point"]), np.array(p["side"]["normal"])) for name, p in spec["patches"].items()]
     if patches:
         shells[0] = cut_by_planes(body, [(p.point, p.normal) for p in patches])
+        sides = shells[0].patches
+        assert sides is not None  # cut_by_planes marks them
         for p, patch in enumerate(patches):
-            require((shells[0].patches >> p & 1).any(),
+            require((sides >> p & 1).any(),
                     f"{spec_path}: patches.{patch.name}: no part of the outer boundary has (c - point) . normal > 0")
     units = spec["units"]
     _note_coarse_organs(organs, organ_size, units)

@@ -74,7 +74,7 @@ def phantom_organs(seed: int) -> dict:
 
     The jitter (radii +-8 %, centres +-0.15 cm) keeps every gap between organs open.
     """
-    nominal = {
+    nominal: dict[str, dict] = {
         "bladder": {"center": [0.0, -0.3, 2.6], "radii": [2.3, 1.9, 1.5]},
         "prostate": {"center": [0.0, 0.0, -0.8], "radii": [1.6, 1.3, 1.1]},
         "rectum": {"center": [0.0, 2.9, -4.0], "radius": 0.9, "length": 5.0},
@@ -84,7 +84,7 @@ def phantom_organs(seed: int) -> dict:
     if seed == 0:
         return nominal
     rng = np.random.default_rng(seed)
-    organs = {}
+    organs: dict[str, dict] = {}
     for name, organ in nominal.items():
         organs[name] = dict(organ)
         organs[name]["center"] = list(np.add(organ["center"], rng.uniform(-0.15, 0.15, 3)))
@@ -242,7 +242,7 @@ def _phantom_geometry(gmsh, organs: dict, seed: int) -> dict[str, list[int]]:
     prostate_vol, tissue_vol = volumes[0][1], volumes[-1][1]
     prostate_faces = [t for _, t in gmsh.model.getBoundary([(3, prostate_vol)], oriented=False)]
     outer = (-half[0], -half[1], -half[2], half[0], half[1], half[2])
-    faces = {"bladder": [], "rectum": [], "bones": [], "skin": []}
+    faces: dict[str, list[int]] = {"bladder": [], "rectum": [], "bones": [], "skin": []}
     for _, face in gmsh.model.getBoundary([(3, tissue_vol)], oriented=False):
         if face in prostate_faces:
             continue

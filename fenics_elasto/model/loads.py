@@ -22,9 +22,9 @@ def boundary_load(dofs: DofLayout, tractions: dict, pressures: dict | None = Non
     fdim = mesh.topology.dim - 1
     pressures = pressures or {}
     groups = list(tractions) + list(pressures)
-    facets = [scene.facet_groups[g] for g in groups]
-    values = [np.full(len(f), i + 1, np.int32) for i, f in enumerate(facets)]
-    facets, values = np.concatenate(facets), np.concatenate(values)
+    per_group = [scene.facet_groups[g] for g in groups]
+    facets = np.concatenate(per_group)
+    values = np.concatenate([np.full(len(f), i + 1, np.int32) for i, f in enumerate(per_group)])
     order = np.argsort(facets, kind="stable")
     tags = dolfinx.mesh.meshtags(mesh, fdim, facets[order], values[order])
     ds = ufl.Measure("ds", domain=mesh, subdomain_data=tags)

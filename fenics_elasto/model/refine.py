@@ -181,6 +181,7 @@ class Batch:
         split = split_of(self.etype)
         variant = np.zeros(len(self.nodes), dtype=np.int64)
         if len(split.children) > 1:  # the shortest diagonal: the better-shaped children
+            assert self.positions is not None  # refine_batches placed the lattice points
             ends = self.positions[:, split.diagonals]  # (elements, variants, 2, 3)
             variant = np.argmin(np.linalg.norm(ends[:, :, 0] - ends[:, :, 1], axis=-1), axis=1)
         picked = split.children[variant].reshape(len(self.nodes), -1)
@@ -209,11 +210,11 @@ def refine_batches(batches: list[Batch], position: np.ndarray, source: Path) -> 
         tags[:, split.parent_nodes] = batch.nodes
         known.append(tags.ravel())
         coords.append(batch.positions.reshape(-1, 3))
-    keys, known, coords = np.concatenate(keys), np.concatenate(known), np.concatenate(coords)
-    first, inverse = unique_rows(keys)
+    first, inverse = unique_rows(np.concatenate(keys))
+    known_tags, coords_all = np.concatenate(known), np.concatenate(coords)  # per lattice point
     tag_of, lowest = np.zeros(len(first), np.int64), np.full(len(first), np.iinfo(np.int64).max)
-    np.maximum.at(tag_of, inverse, known)
-    np.minimum.at(lowest, inverse[known > 0], known[known > 0])
+    np.maximum.at(tag_of, inverse, known_tags)
+    np.minimum.at(lowest, inverse[known_tags > 0], known_tags[known_tags > 0])
     at_node = tag_of > 0
     require(np.array_equal(tag_of[at_node], lowest[at_node]),
             f"{source}: two nodes stand for one point of an edge or face (the mesh is not conforming)")
@@ -225,7 +226,7 @@ def refine_batches(batches: list[Batch], position: np.ndarray, source: Path) -> 
             size = batch.nodes.shape[0] * len(split_of(batch.etype).points)
             batch.points = tag_of[inverse[offset : offset + size]].reshape(len(batch.nodes), -1)
             offset += size
-    return tag_of[new], coords[first[new]]
+    return tag_of[new], coords_all[first[new]]
 
 
 # --------------------------------------------------------------------------- the .msh file

@@ -159,7 +159,7 @@ def read_msh(path: Path, comm=MPI.COMM_WORLD):
     """
     import gmsh
 
-    facet_rows = {}  # rank 0: every facet group's facets as node rows
+    facet_rows: dict[str, np.ndarray] = {}  # rank 0: every facet group's facets as node rows
     try:
         tdim, names = on_root(comm, lambda: _open_checked(path, facet_rows))
         try:  # model_to_mesh shares its own errors across ranks
@@ -204,10 +204,8 @@ def _distribute_facet_groups(mesh, names: list[str], facet_rows: dict, comm) -> 
     mesh.topology.create_connectivity(fdim, fdim + 1)
     facet_groups = {}
     for name in names:
-        rows = facet_rows[name] if comm.rank == 0 else None
-        width = comm.bcast(rows.shape[1] if comm.rank == 0 else None, root=0)
-        if rows is None:
-            rows = np.empty((0, width), np.int64)
+        width = comm.bcast(facet_rows[name].shape[1] if comm.rank == 0 else None, root=0)
+        rows = facet_rows[name] if comm.rank == 0 else np.empty((0, width), np.int64)
         local, _ = distribute_entity_data(mesh, fdim, rows, np.zeros(len(rows), np.int32))
         facets = dolfinx.mesh.meshtags_from_entities(
             mesh, fdim, dolfinx.graph.adjacencylist(local), np.zeros(len(local), np.int32)

@@ -645,7 +645,8 @@ class WarmStart:
 
     def __init__(self, comm):
         self.comm = comm
-        self.S = self.KS = None  # (owned rows, m)
+        self.S: np.ndarray | None = None  # (owned rows, m)
+        self.KS: np.ndarray | None = None
         self.state = None  # K's identity and state that KS belongs to
         self.capacity = WARM_COLUMNS[0]
 
@@ -668,7 +669,7 @@ class WarmStart:
         self.capacity = min(max(self.capacity, X.shape[1]), WARM_COLUMNS[1])
         current = self.KS is not None and self.state == _state(K)
         S = X if self.S is None else np.hstack([X, self.S])
-        KS = B if self.S is None else np.hstack([B, self.KS]) if current else None
+        KS = B if self.KS is None or self.S is None else np.hstack([B, self.KS]) if current else None
         self.S = S[:, : self.capacity].copy()
         self.KS = None if KS is None else KS[:, : self.capacity].copy()
         self.state = None if KS is None else _state(K)

@@ -5,7 +5,8 @@ class UserError(Exception):
     """Bad input. The CLI prints ``error: <message>`` and exits with status 2."""
 
 
-def require(condition: bool, message: str) -> None:
+def require(condition: object, message: str) -> None:
+    """Raise ``UserError(message)`` unless ``condition`` holds (is truthy)."""
     if not condition:
         raise UserError(message)
 

@@ -69,9 +69,10 @@ class AnswerUncertainty:
             return
         fits = []  # (s, fit): the surrogate's inner optima met along the way, starts for the spread
         known = []  # (s, Phi*) the estimate's own full solves computed: the same function, already at hand
-        if self.surrogate is not None:
+        surrogate = self.surrogate
+        if surrogate is not None:
             def value(s):
-                fits.append((s, self.surrogate.fit(np.atleast_1d(s))))
+                fits.append((s, surrogate.fit(np.atleast_1d(s))))
                 return fits[-1][1].value
         else:
             value = lambda s: self.profile.solve(self.params.to_theta(np.atleast_1d(s)), "ci").value  # noqa: E731
@@ -106,13 +107,15 @@ class AnswerUncertainty:
         unlike cold fits that hop between minima) to where it rises above the noise's
         threshold plus that spread. Returns the interval's ends and whether Phi* is
         still to be reported as ``jagged`` (a spread too small to matter)."""
+        surrogate = self.surrogate
+        assert surrogate is not None  # fits on the surrogate are what was jagged
         s_hat, std, bounds = float(post.s[0]), float(post.laplace_std_s[0]), self.params.s_bounds()[0]
         start = time.perf_counter()
         met = sorted(((s, fit) for s, fit in fits if s != s_hat), key=lambda item: item[0])
         pick = np.unique(np.linspace(0, len(met) - 1, min(JITTER_STARTS, len(met))).round().astype(int))
         starts = [met[i][1].q for i in pick]
         cold = next((fit for s, fit in fits if s == s_hat), None)  # the profile interval's own first fit
-        post.inner_spread, q_best = self.surrogate.inner_spread(np.atleast_1d(s_hat), starts, cold)
+        post.inner_spread, q_best = surrogate.inner_spread(np.atleast_1d(s_hat), starts, cold)
         noise = jitter_noise(post.noise_std, post.inner_spread)
         log.info(f"inner fits at the answer from {len(starts) + 1} starts end up to {post.inner_spread:.3g} apart "
                  f"in Phi* ({time.perf_counter() - start:.1f} s)")
@@ -120,7 +123,7 @@ class AnswerUncertainty:
             return ends, jagged
 
         def branch(s):
-            return self.surrogate.fit(np.atleast_1d(s), q_best).value
+            return surrogate.fit(np.atleast_1d(s), q_best).value
 
         reach = Z95 * std
         start = time.perf_counter()

@@ -47,8 +47,10 @@ def check_identifiable(answer: AnswerUncertainty, scanned: list[float], scan: in
     runs, with a warning that its answer rests on the rest of its effect. ``scan``: values
     per constant in the start scan; ``allow``: optimizer.allow_undetermined."""
     post = answer.posterior()
-    undetermined = {} if post is None else post.undetermined(answer.params.s_bounds())
-    if (post is not None and not undetermined and len(answer.params) == 1 and scan > 1
+    if post is None:  # no linearisation at the scan's solves: nothing to check with
+        return
+    undetermined = post.undetermined(answer.params.s_bounds())
+    if (not undetermined and len(answer.params) == 1 and scan > 1
             and not scan_excludes(scanned, post.noise_std)):
         undetermined = {answer.params.labels[0]: "Phi* over the start scan stays within the noise's 95 % threshold: "
                                                  "none of the values scanned across its bounds is excluded"}

@@ -132,7 +132,7 @@ class Posterior:
 
     def record(self) -> dict:
         """result.json's ``uncertainty``."""
-        out = {label: {"std": float(sd), "ci95": [float(lo), float(hi)]}
+        out: dict[str, object] = {label: {"std": float(sd), "ci95": [float(lo), float(hi)]}
                for label, sd, (lo, hi) in zip(self.labels, self.std(), self.interval())}
         out["separable"] = {label: float(v) for label, v in zip(self.labels, self.separable)}
         out["noise_std"] = self.noise_std

@@ -3,13 +3,12 @@ a fresh factorization, BLR refined to exact, warm starts that save iterations, a
 failures that end in one line instead of a silently wrong (or infinite) field."""
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
 from petsc4py import PETSc
 
-from conftest import run_cli, run_mpi_script
+from conftest import TESTS, run_cli, run_mpi_script
 from targets import letter_case
 from fenics_elasto.model.elasticity import ElasticModel
 from fenics_elasto.model.loads import boundary_load
@@ -19,7 +18,7 @@ from fenics_elasto.model.simulate import material_values, simulate
 from fenics_elasto.model.solvers import DIRECT_LIMIT, SolverError, SolverSettings
 from fenics_elasto.model.responses import response_block
 
-MPI_SCRIPT = Path(__file__).parent / "mpi" / "solvers.py"
+MPI_SCRIPT = TESTS / "mpi" / "solvers.py"
 
 
 @pytest.fixture(scope="module")

@@ -14,7 +14,7 @@ from fenics_elasto.inverse.objective import InverseProblem
 from fenics_elasto.inverse.reduction.bases import Bases, load_bases, pca, train_bases
 from fenics_elasto.model.scene import load_scene
 from targets import fine_simulation, inclusion_ratio_4_target, letter_case
-from test_gradients import taylor_rates
+from targets import taylor_rates
 
 
 def test_pca_recovers_a_known_low_rank_set():

@@ -8,15 +8,7 @@ import pytest
 from fenics_elasto.mesh.builtin import build_scene
 from fenics_elasto.inverse.objective import InverseProblem
 from fenics_elasto.model.scene import load_scene
-from fenics_elasto.inverse.verification import taylor_test
-from targets import fine_simulation, landmarks_for, letter_case
-
-
-def taylor_rates(phi, x, direction, gradient, eps0):
-    """Rates of |phi(x + e d) - phi(x) - e g.d| as e halves (2 for a correct gradient)."""
-    result = taylor_test(phi, x, direction, gradient, eps0)
-    assert not result.at_roundoff, result
-    return result.rates, result.remainders
+from targets import fine_simulation, landmarks_for, letter_case, taylor_rates
 
 
 def check(problem, theta, controls, coordinates, rng, eps_controls, eps_theta):

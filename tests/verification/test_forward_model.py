@@ -1,6 +1,5 @@
 """Forward model properties: linear combination, scaling, factorization reuse, MPI."""
 
-from pathlib import Path
 
 import basix
 import numpy as np
@@ -10,7 +9,7 @@ import ufl
 import dolfinx.fem.petsc
 from dolfinx import fem
 
-from conftest import run_mpi_script
+from conftest import TESTS, run_mpi_script
 import fenics_elasto.model.stiffness as stiffness
 from fenics_elasto.model.dofs import DofLayout
 from fenics_elasto.model.elasticity import ElasticModel
@@ -193,7 +192,7 @@ def _sorted_by_position(data):
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ["letter-a", "prostate-phantom"])
 def test_two_ranks_give_the_serial_displacement(scenes, tmp_path, name):
-    script = Path(__file__).parent / "mpi" / "forward.py"
+    script = TESTS / "mpi" / "forward.py"
     results = {}
     for ranks in (1, 2):
         run_mpi_script(script, ranks, scenes[name], tmp_path / f"u{ranks}.npz")

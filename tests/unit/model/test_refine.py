@@ -6,7 +6,6 @@ DOLFINx's point evaluation), and a refined problem that runs and converges."""
 import itertools
 import json
 import tomllib
-from pathlib import Path
 
 import basix.ufl
 import numpy as np
@@ -18,7 +17,7 @@ import dolfinx
 import dolfinx.geometry
 from dolfinx import fem
 
-from conftest import run_mpi_script
+from conftest import TESTS, run_mpi_script
 from fenics_elasto.app.cli import main
 from fenics_elasto.model.dofs import DofLayout
 from fenics_elasto.model.elasticity import ElasticModel
@@ -28,7 +27,7 @@ from fenics_elasto.mesh.builtin import build_scene
 from fenics_elasto.model.refine import prolongation, refine_scene, transfer_bases
 from fenics_elasto.model.scene import load_scene
 from fenics_elasto.model.simulate import simulate
-from test_forward_analytic import C, E, L, P, cantilever_errors
+from analytic import C, E, L, P, cantilever_errors
 
 SIZES = {"letter-a": None, "inclusion": None, "cantilever": 0.5, "prostate-phantom": 1.6}
 STRAIGHT_WALLS = {"letter-a": True, "inclusion": True, "prostate-phantom": False}  # loaded facets: physical
@@ -277,7 +276,7 @@ def test_simulate_runs_on_the_refined_problem(pair, tmp_path):
 @pytest.mark.slow
 def test_two_ranks_refine_and_transfer_as_one(pair, tmp_path):
     coarse, _ = pair("inclusion")
-    script = Path(__file__).parent / "mpi" / "refine.py"
+    script = TESTS / "mpi" / "refine.py"
     for ranks in (1, 2):
         run_mpi_script(script, ranks, coarse.path, tmp_path / f"r{ranks}", tmp_path / f"w{ranks}.npy")
     assert (tmp_path / "r1" / "inclusion.msh").read_bytes() == (tmp_path / "r2" / "inclusion.msh").read_bytes()

@@ -32,7 +32,7 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import catalogue_files as files  # noqa: E402
 from conftest import BIN, run_cli  # noqa: E402
 from fenics_elasto.app.cli import main  # noqa: E402

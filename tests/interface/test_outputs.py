@@ -22,9 +22,10 @@ import pytest
 
 from fenics_elasto.util.errors import UserError
 from fenics_elasto.util.interrupts import Interrupted, deferred_signals, handle_signals
+from conftest import TESTS
 from fenics_elasto.files.outputs import LOCK, prepare_file, prepare_folder
 
-CHILD = Path(__file__).with_name("outputs_child.py")
+CHILD = TESTS / "outputs_child.py"
 BIN = Path(sys.executable).parent
 sys.path.insert(0, str(CHILD.parent))
 import outputs_child  # noqa: E402

@@ -3,12 +3,11 @@ the body (interpolated exactly for fields the space holds), surfaces plus landma
 and the full-space set-ups that cannot determine anything refused at once."""
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-from conftest import run_cli, run_mpi_script
+from conftest import TESTS, run_cli, run_mpi_script
 from fenics_elasto.app.cli import main
 from fenics_elasto.model.dofs import DofLayout
 from fenics_elasto.model.elasticity import ElasticModel
@@ -21,7 +20,7 @@ from fenics_elasto.model.scene import load_scene
 from fenics_elasto.model.simulate import probe
 from targets import fine_simulation
 
-MPI_LANDMARKS = Path(__file__).parent / "mpi" / "landmarks.py"
+MPI_LANDMARKS = TESTS / "mpi" / "landmarks.py"
 
 
 def test_auto_matches_vertices_on_straight_p2_and_every_node_on_curved(scenes, tmp_path):
