@@ -10,11 +10,11 @@ PYTHON ?= $(shell for p in python3.13 python3.12 python3 $$(ls -d $$HOME/.pyenv/
 
 .PHONY: bench-adjoint demo demo-quick demo-accurate demo-prostate demo-prostate-quick test test-fast test-demo bench lint clean
 
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml constraints.txt
 	@test -n "$(PYTHON)" || { echo "error: no python >= 3.12 found on PATH" >&2; exit 2; }
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q -e '.[test]'
+	$(PY) -m pip install -q -c constraints.txt -e '.[wheel,test]'
 	touch $(STAMP)
 
 demo: $(STAMP)
