@@ -103,6 +103,7 @@ PROBLEM = Table({
     "mesh": Key(String("a mesh file"), REQUIRED),
     "plane": Key(Choice("strain", "stress"), "strain"),
     "degree": Key(Choice(1, 2), 2),
+    "curve": Key(Choice("auto", "off"), "auto"),  # a straight-sided mesh of curved surfaces: curved on load
     "units": Key(String()),
     "materials": Key(Named(MATERIAL, "[materials.NAME] tables", minimum=1), REQUIRED),
     "boundary": Key(BOUNDARY, {}),

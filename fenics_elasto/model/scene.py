@@ -23,6 +23,7 @@ from fenics_elasto.config.toml import apply_overrides, read_toml
 from fenics_elasto.util.errors import UserError, on_root, require
 from fenics_elasto.mesh.gmsh_models import open_msh, physical_facets
 from fenics_elasto.util.logs import log
+from fenics_elasto.mesh.curving import curve_if_straight
 from fenics_elasto.mesh.meshcheck import check_mesh
 
 ELASTIC_KEYS = ("E", "nu")
@@ -63,6 +64,7 @@ class Scene:
     load: dict[str, np.ndarray] = field(default_factory=dict)  # total force, per group
     pressure: dict[str, float] = field(default_factory=dict)  # pressure pushing the wall in, per group
     match_nodes: str = "auto"  # "auto" | "all" | "vertices" (observation.matched_vertices_only)
+    warnings: list[str] = field(default_factory=list)  # what loading it found worth a warning (curving)
 
     @property
     def gdim(self) -> int:
@@ -149,8 +151,10 @@ class Parameters:
 # --------------------------------------------------------------------------- mesh
 
 
-def read_msh(path: Path, comm=MPI.COMM_WORLD):
-    """Read a gmsh .msh into (mesh, cell_tags, cell group names->tag, facet groups).
+def read_msh(path: Path, comm=MPI.COMM_WORLD, curve: bool = False):
+    """Read a gmsh .msh into (mesh, cell_tags, cell group names->tag, facet groups,
+    warnings); ``curve``: give a straight-sided mesh of curved surfaces curved geometry
+    (mesh/curving.py; one line says so, the warnings what it could not tell).
 
     ``dolfinx.io.gmsh.read_from_msh`` keeps one tag per facet, so overlapping facet
     groups (``feet`` inside ``outline``) would lose members. Each facet group is
@@ -161,7 +165,7 @@ def read_msh(path: Path, comm=MPI.COMM_WORLD):
 
     facet_rows: dict[str, np.ndarray] = {}  # rank 0: every facet group's facets as node rows
     try:
-        tdim, names = on_root(comm, lambda: _open_checked(path, facet_rows))
+        tdim, names, warnings = on_root(comm, lambda: _open_checked(path, facet_rows, curve))
         try:  # model_to_mesh shares its own errors across ranks
             data = dolfinx.io.gmsh.model_to_mesh(gmsh.model if comm.rank == 0 else None, comm, 0, gdim=tdim)
         except RuntimeError as err:
@@ -171,12 +175,13 @@ def read_msh(path: Path, comm=MPI.COMM_WORLD):
             gmsh.model.remove()
     facet_groups = _distribute_facet_groups(data.mesh, names, facet_rows, comm)
     cell_groups = {n: g.tag for n, g in data.physical_groups.items() if g.dim == tdim}
-    return data.mesh, data.cell_tags, cell_groups, facet_groups
+    return data.mesh, data.cell_tags, cell_groups, facet_groups, warnings
 
 
-def _open_checked(path: Path, facet_rows: dict) -> tuple[int, list[str]]:
+def _open_checked(path: Path, facet_rows: dict, curve: bool) -> tuple[int, list[str], list[str]]:
     """Rank 0: open the .msh in gmsh, check what DOLFINx's reader would choke on, and
-    fill ``facet_rows`` (group name -> facets as node rows); (tdim, facet group names)."""
+    fill ``facet_rows`` (group name -> facets as node rows); (tdim, facet group names,
+    the curving's warnings)."""
     import gmsh
 
     open_msh(path)
@@ -194,8 +199,9 @@ def _open_checked(path: Path, facet_rows: dict) -> tuple[int, list[str]]:
     require(not unnamed, f"{path}: cell physical group(s) {unnamed} have no name; the problem file names "
                          "each region's material (gmsh: Physical Volume(\"name\") = ...)")
     check_mesh(gmsh, str(path), tdim)
+    warnings = curve_if_straight(gmsh, tdim, path) if curve else []
     facet_rows.update(physical_facets(gmsh, tdim))
-    return tdim, sorted(facet_rows)
+    return tdim, sorted(facet_rows), warnings
 
 
 def _distribute_facet_groups(mesh, names: list[str], facet_rows: dict, comm) -> dict[str, np.ndarray]:
@@ -232,9 +238,10 @@ def load_scene(problem, overrides=(), comm=MPI.COMM_WORLD, command: str | None =
     config, warnings = validate_problem(raw, str(path), command, None, overridden)
     for text in warnings:  # simulate-only tables in an estimate: harmless, said once
         log.info(f"note: {text}")
-    mesh_data = read_msh(path.parent / config["mesh"], comm)
-    check_gdim(config, mesh_data[0].geometry.dim, str(path), overridden)
-    return _configure(path, raw, config, *mesh_data)
+    curve = config["curve"] == "auto" and config["degree"] == 2  # P1 fields on curved cells gain nothing
+    mesh, cell_tags, cell_groups, facet_groups, mesh_warnings = read_msh(path.parent / config["mesh"], comm, curve)
+    check_gdim(config, mesh.geometry.dim, str(path), overridden)
+    return _configure(path, raw, config, mesh, cell_tags, cell_groups, facet_groups, warnings=mesh_warnings)
 
 
 def reconfigure(scene: Scene, overrides, command: str | None = None) -> Scene:
@@ -245,7 +252,8 @@ def reconfigure(scene: Scene, overrides, command: str | None = None) -> Scene:
     config, _ = validate_problem(raw, str(scene.path), command, scene.gdim, overridden)
     require(config["mesh"] == scene.config["mesh"], f"{scene.path}: reconfigure keeps the mesh; load the other one")
     cell_groups = {m.name: m.tag for m in scene.materials}
-    return _configure(scene.path, raw, config, scene.mesh, scene.cell_tags, cell_groups, scene.facet_groups)
+    return _configure(scene.path, raw, config, scene.mesh, scene.cell_tags, cell_groups, scene.facet_groups,
+                      warnings=scene.warnings)
 
 
 def _parameter(spec: dict) -> Parameter:
@@ -281,7 +289,8 @@ def _displacement(spec: dict, gdim: int) -> dict:
             "ripple": spec["ripple"]}
 
 
-def _configure(path: Path, raw: dict, config: dict, mesh, cell_tags, cell_groups: dict, facet_groups: dict) -> Scene:
+def _configure(path: Path, raw: dict, config: dict, mesh, cell_tags, cell_groups: dict, facet_groups: dict,
+               warnings: list[str] | None = None) -> Scene:
     """Check the normalised settings against the mesh's groups and build the Scene."""
     _check_groups(path, config, cell_groups, facet_groups, mesh)
     materials = [Material(name, tag, _parameter(config["materials"][name]["E"]), _parameter(config["materials"][name]["nu"]))
@@ -296,4 +305,5 @@ def _configure(path: Path, raw: dict, config: dict, mesh, cell_tags, cell_groups
         load={g: np.array(v) for g, v in boundary["load"].items()},
         pressure=dict(boundary["pressure"]),
         match_nodes=boundary["match_nodes"],
+        warnings=list(warnings or []),
     )

@@ -1,0 +1,418 @@
+"""Straight-sided meshes of curved bodies, curved on load.
+
+Most meshers write order-1 (straight-sided) simplices: a curved organ becomes a polyhedron
+inscribed in it, and with P2 elements its edge midpoints sit on chords, up to the sag
+c^2 / (8 R) inside the surface a target describes (edge c, radius of curvature R). On a
+3D phantom meshed plainly by gmsh that cost E 5-7 % (issue #31) -- a geometric error no
+finer field fixes.
+
+``curve_mesh`` gives such a mesh order-2 geometry (on rank 0, in the open gmsh model):
+gmsh adds the edge midpoints, and every midpoint on a surface -- the boundary, and the
+interfaces between regions -- moves onto a smooth surface reconstructed through the
+facets:
+
+- the surface is cut into smooth patches along its feature edges (facets meeting at more
+  than FEATURE_ANGLE: a box's edges, a cylinder's caps), and each patch's vertices get
+  their normal (the angle-weighted mean of its facets');
+- an edge inside a patch follows the cubic of PN triangles (Vlachos et al., 2001), the
+  curve through its ends tangent to the planes of their normals: its midpoint is
+  (a + b) / 2 - (w_ab n_a + w_ba n_b) / 8, w_ab = (b - a) . n_a -- exact to second order
+  on a sphere, and nothing moves on a flat patch;
+- a feature edge follows the cubic Hermite curve along its feature line, whose tangent
+  at a vertex points from the previous vertex of the line to the next: a straight line
+  stays straight, a cap's circle is followed; where a line ends or branches (a corner),
+  the chord is the tangent.
+
+Cells the curved midpoints fold over are then unfolded (their surface midpoints moved
+back towards the chord until they do not). A mesh is
+curved only where it is straight-sided (order 1), for P2 fields, and where some surface
+actually bends (a polygon or a box stays as it is); on load, in 3D only (``curve_if_straight``):
+a straight-sided 2D source matched at its vertices was already within 0.1 % (the
+independent inclusion, E ratio 5: +0.11 %), and curved it gave +0.32 % at 5x the inner
+iterations far from the answer.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from fenics_elasto.mesh.gmsh_models import node_positions
+from fenics_elasto.mesh.meshcheck import folds
+from fenics_elasto.util.logs import log
+
+FEATURE_ANGLE = np.radians(35.0)  # facets meeting at more: a feature edge (kept sharp)
+BENT_ANGLE = np.radians(0.5)  # a surface whose facets all meet at less is flat: nothing to curve
+COARSE_ANGLE = np.radians(20.0)  # a surface whose facets meet at more on average (sharp edges aside) is coarse
+SHARP_ANGLE = np.radians(60.0)  # ... where facets meeting at more are taken for its sharp edges, not its curvature
+MOVE_LIMIT = 0.25  # a midpoint moves by at most this share of its edge (noisy normals)
+CELLS = {2: (2, 9, ((0, 1, 3), (1, 2, 4), (2, 0, 5))),  # tdim: (order-1 type, order-2 type, its edges' midpoints)
+         3: (4, 11, ((0, 1, 4), (1, 2, 5), (2, 0, 6), (3, 0, 7), (2, 3, 8), (3, 1, 9)))}
+
+
+@dataclass
+class Curving:
+    """What ``curve_mesh`` did."""
+
+    moved: int  # surface edge midpoints moved
+    largest: float  # the largest move
+    largest_share: float  # ... relative to its edge
+    straightened: int  # cells whose folding midpoints were put back on their chords
+    coarse: dict  # facet group name -> mean angle (radians) between its neighbouring facets, where over COARSE_ANGLE
+
+
+@dataclass
+class Surface:
+    """The facets of a mesh's surfaces (boundary and interfaces) with outward-consistent
+    normals, as node tags; ``group`` tells apart surfaces that meet (region, or boundary)."""
+
+    facets: np.ndarray  # (m, tdim) node tags
+    normals: np.ndarray  # (m, 3) unit normals, oriented consistently per surface
+    group: np.ndarray  # (m,) which surface each facet is on
+
+
+def curve_if_straight(gmsh, tdim: int, path) -> list[str]:
+    """A straight-sided 3D mesh in the open gmsh model whose surfaces bend, curved
+    (``curve_mesh``), with one line saying so; returns the warnings for surfaces too
+    coarse to tell their curvature."""
+    if tdim != 3 or not straight_sided(gmsh, tdim):
+        return []
+    done = curve_mesh(gmsh, tdim)
+    if done is None:
+        return []
+    unfolded = f"; {done.straightened} thin cells kept partly straight so as not to fold" if done.straightened else ""
+    log.info(f"note: {Path(path).name}: straight-sided (order 1) with curved surfaces: curved on load, {done.moved} "
+             f"surface edge midpoints moved onto smooth surfaces through its facets (largest move {done.largest:.3g}, "
+             f"{100 * done.largest_share:.0f} % of its edge{unfolded}); curve = \"off\" keeps it straight")
+    return [f"{Path(path).name}: {name}: neighbouring facets meet at {np.degrees(angle):.0f} degrees on average, too "
+            "coarse to tell its curvature: its curved surface may be off by a good part of its sag (up to "
+            f"{done.largest:.2g} here), which can move an estimated E by several % -- mesh it finer (2-3x more "
+            "facets across it)" for name, angle in done.coarse.items()]
+
+
+def straight_sided(gmsh, tdim: int) -> bool:
+    """Is the mesh's geometry of order 1 (gmsh's 3-node triangles / 4-node tetrahedra)?"""
+    types = {int(t) for t in gmsh.model.mesh.getElementTypes(tdim)}
+    return types == {CELLS[tdim][0]}
+
+
+def curve_mesh(gmsh, tdim: int) -> Curving | None:
+    """Curve a straight-sided mesh whose surfaces bend (module docstring), in the open
+    gmsh model; None (nothing done) where every surface is flat."""
+    position = node_positions(gmsh)
+    surface = mesh_surfaces(gmsh, tdim, position)
+    edges, patches = surface_edges(surface, tdim)
+    angles = _edge_angles(surface, edges)
+    if _bend(surface, edges, angles, tdim) < BENT_ANGLE:
+        return None
+    targets = midpoint_targets(surface, edges, patches, angles, position, tdim)
+    coarse = _coarse_groups(gmsh, tdim, surface, edges, angles)  # before the order-2 elements replace these
+    renumber = _set_order_2(gmsh, tdim)
+    midpoint = _midpoint_nodes(gmsh, tdim)
+    move = targets - (position[edges.ends[:, 0]] + position[edges.ends[:, 1]]) / 2
+    length = np.linalg.norm(position[edges.ends[:, 1]] - position[edges.ends[:, 0]], axis=1)
+    ends = np.sort(renumber[edges.ends], axis=1)
+    nodes = np.array([midpoint[(int(a), int(b))] for a, b in ends])
+    for node, point in zip(nodes, targets):
+        gmsh.model.mesh.setNode(int(node), point, [])
+    straightened = _unfold(gmsh, tdim, nodes, targets - move)
+    size = np.linalg.norm(move, axis=1)
+    at = int(np.argmax(size))
+    return Curving(len(nodes), float(size[at]), float(size[at] / length[at]), straightened, coarse)
+
+
+UNFOLD_STEPS = (0.5, 0.25, 0.0)  # the share of its move a folding cell's surface midpoint keeps, tried in turn
+
+
+def _unfold(gmsh, tdim: int, nodes: np.ndarray, chords: np.ndarray) -> int:
+    """Cells that a curved midpoint folds over (det J changes sign inside: a thin cell at
+    a curved wall) get their surface midpoints moved back towards their chords, halfway,
+    a quarter, then all the way, until none folds. Returns the cells so treated. (gmsh's
+    own high-order optimiser was tried first: on a box with a ball and a tube, meshed
+    plainly, it aborted the process -- "Failed to reach critical value ... ScaledJac".)"""
+    surface_node = {int(n): i for i, n in enumerate(nodes)}
+    targets = {int(n): p for n, p in zip(nodes, node_positions(gmsh)[nodes])}
+    treated: set[int] = set()
+    for keep in UNFOLD_STEPS:
+        tags, rows = _folded(gmsh, tdim)
+        if not len(tags):
+            break
+        treated.update(map(int, tags))
+        for node in {int(n) for n in rows[:, tdim + 1:].ravel()} & surface_node.keys():
+            chord = chords[surface_node[node]]
+            gmsh.model.mesh.setNode(node, chord + keep * (targets[node] - chord), [])
+    return len(treated)
+
+
+def _folded(gmsh, tdim: int) -> tuple[np.ndarray, np.ndarray]:
+    """(tags, node rows) of the order-2 cells whose det J changes sign inside."""
+    tags, nodes = gmsh.model.mesh.getElementsByType(CELLS[tdim][1])
+    rows = np.asarray(nodes, np.int64).reshape(len(tags), -1)
+    folded = folds(gmsh, tags)
+    return np.asarray(tags, np.int64)[folded], rows[folded]
+
+
+# --------------------------------------------------------------------------- the surfaces
+
+
+def mesh_surfaces(gmsh, tdim: int, position: np.ndarray) -> Surface:
+    """Every facet on the boundary or between two regions (cell physical groups), each
+    normal pointing out of its cell (on an interface: out of the lower-numbered region)."""
+    cells, region = _cells_with_regions(gmsh, tdim)
+    local = np.array([[j for j in range(tdim + 1) if j != i] for i in range(tdim + 1)])  # facet i: opposite vertex i
+    facets = cells[:, local].reshape(-1, tdim)  # (cells x (tdim + 1), tdim)
+    opposite = cells.reshape(-1)  # facet i of a cell lies opposite its vertex i
+    owner = np.repeat(np.arange(len(cells)), tdim + 1)
+    key = np.sort(facets, axis=1)
+    order = np.lexsort(key.T[::-1])
+    key, facets, opposite, owner = key[order], facets[order], opposite[order], owner[order]
+    start = np.r_[True, np.any(np.diff(key, axis=0) != 0, axis=1)]
+    first = np.flatnonzero(start)
+    count = np.diff(np.r_[first, len(key)])
+    second = first + 1
+    pair = count == 2
+    interface = np.zeros(len(first), bool)
+    interface[pair] = region[owner[first[pair]]] != region[owner[second[pair]]]
+    keep = (count == 1) | interface
+    rows = first[keep]
+    # an interface facet belongs to the lower-numbered region's cell; the boundary's to its one cell
+    other = region[owner[np.minimum(rows + 1, len(owner) - 1)]]
+    swap = interface[keep] & (other < region[owner[rows]])
+    low, high = np.minimum(region[owner[rows]], other), np.maximum(region[owner[rows]], other)
+    rows = np.where(swap, rows + 1, rows)
+    group = np.where(interface[keep], low * (int(region.max()) + 1) + high, -1)  # boundary: -1
+    normals = _outward_normals(position, facets[rows], position[opposite[rows]], tdim)
+    return Surface(facets[rows], normals, group)
+
+
+def _cells_with_regions(gmsh, tdim: int) -> tuple[np.ndarray, np.ndarray]:
+    """(cells as node-tag rows of their vertices, the physical group of each)."""
+    rows, region = [], []
+    for dim, tag in gmsh.model.getPhysicalGroups(tdim):
+        for entity in gmsh.model.getEntitiesForPhysicalGroup(dim, tag):
+            _, nodes = gmsh.model.mesh.getElementsByType(CELLS[tdim][0], entity)
+            block = np.asarray(nodes, np.int64).reshape(-1, tdim + 1)
+            rows.append(block)
+            region.append(np.full(len(block), tag))
+    return np.concatenate(rows), np.concatenate(region)
+
+
+def _outward_normals(position: np.ndarray, facets: np.ndarray, inside: np.ndarray, tdim: int) -> np.ndarray:
+    """Unit normals of facets (node-tag rows), pointing away from the points ``inside``."""
+    a = position[facets[:, 0]]
+    if tdim == 3:
+        n = np.cross(position[facets[:, 1]] - a, position[facets[:, 2]] - a)
+    else:
+        t = position[facets[:, 1]] - a
+        n = np.c_[t[:, 1], -t[:, 0], np.zeros(len(t))]
+    n *= np.where(np.einsum("ij,ij->i", n, inside - a) > 0, -1.0, 1.0)[:, None]
+    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+
+
+@dataclass
+class Edges:
+    """The edges of the surface facets: in 3D the triangles' edges, in 2D the segments
+    themselves. ``facets`` lists the surface facets on each edge (-1 pads)."""
+
+    ends: np.ndarray  # (k, 2) node tags, sorted within each row
+    facets: np.ndarray  # (k, 2) the (up to two) surface facets that share it, -1 where fewer; more: a feature
+    shared: np.ndarray  # (k,) how many surface facets share it
+
+
+def surface_edges(surface: Surface, tdim: int) -> tuple[Edges, np.ndarray]:
+    """(the surface's edges, the smooth patch of each facet)."""
+    m = len(surface.facets)
+    if tdim == 3:
+        ends = np.sort(surface.facets[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+        facet_of = np.repeat(np.arange(m), 3)
+    else:
+        ends = np.sort(surface.facets, axis=1)
+        facet_of = np.arange(m)
+    if tdim == 2:  # a segment is its own edge; its neighbours meet it at its vertices
+        edges = Edges(ends, np.c_[facet_of, np.full(m, -1)], np.ones(m, int))
+        return edges, _patches(surface, _vertex_neighbours(surface), m)
+    order = np.lexsort(ends.T[::-1])
+    ends, facet_of = ends[order], facet_of[order]
+    start = np.r_[True, np.any(np.diff(ends, axis=0) != 0, axis=1)]
+    first = np.flatnonzero(start)
+    shared = np.diff(np.r_[first, len(ends)])
+    pairs = np.c_[facet_of[first], np.where(shared >= 2, facet_of[np.minimum(first + 1, len(ends) - 1)], -1)]
+    edges = Edges(ends[first], pairs, shared)
+    angles = _edge_angles(surface, edges)
+    smooth = (shared == 2) & (angles < FEATURE_ANGLE) & (surface.group[pairs[:, 0]] == surface.group[pairs[:, 1]])
+    return edges, _patches(surface, pairs[smooth], m)
+
+
+def _vertex_neighbours(surface: Surface) -> np.ndarray:
+    """2D: pairs of segments that share a vertex and turn by less than FEATURE_ANGLE."""
+    m = len(surface.facets)
+    vertex = surface.facets.ravel()
+    segment = np.repeat(np.arange(m), 2)
+    order = np.argsort(vertex, kind="stable")
+    vertex, segment = vertex[order], segment[order]
+    same = vertex[1:] == vertex[:-1]
+    a, b = segment[:-1][same], segment[1:][same]
+    turn = np.arccos(np.clip(np.einsum("ij,ij->i", surface.normals[a], surface.normals[b]), -1.0, 1.0))
+    keep = (turn < FEATURE_ANGLE) & (surface.group[a] == surface.group[b])
+    return np.c_[a[keep], b[keep]]
+
+
+def _patches(surface: Surface, links: np.ndarray, count: int) -> np.ndarray:
+    """Connected components of the facets joined by ``links`` (pairs of facets)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    graph = coo_matrix((np.ones(len(links)), (links[:, 0], links[:, 1])), shape=(count, count))
+    return connected_components(graph, directed=False)[1]
+
+
+def _edge_angles(surface: Surface, edges: Edges) -> np.ndarray:
+    """The angle between the normals of the two facets on each edge (pi where not two)."""
+    a, b = edges.facets[:, 0], edges.facets[:, 1]
+    two = b >= 0
+    angle = np.full(len(a), np.pi)
+    cosine = np.einsum("ij,ij->i", surface.normals[a[two]], surface.normals[b[two]])
+    angle[two] = np.arccos(np.clip(cosine, -1.0, 1.0))
+    return angle
+
+
+def _bend(surface: Surface, edges: Edges, angles: np.ndarray, tdim: int) -> float:
+    """The largest angle between neighbouring facets of a smooth patch (0: all flat)."""
+    if tdim == 2:
+        pairs = _vertex_neighbours(surface)
+        cosine = np.einsum("ij,ij->i", surface.normals[pairs[:, 0]], surface.normals[pairs[:, 1]])
+        turns = np.arccos(np.clip(cosine, -1.0, 1.0))
+        return float(turns.max(initial=0.0))
+    return float(np.max(np.where(angles < FEATURE_ANGLE, angles, 0.0), initial=0.0))
+
+
+def _coarse_groups(gmsh, tdim: int, surface: Surface, edges: Edges, angles: np.ndarray) -> dict:
+    """Per facet group, the mean angle between its neighbouring facets (its sharp edges
+    aside), where over COARSE_ANGLE: too few facets to tell its curvature (a radius of
+    curvature under ~3 facet edges). A tube with six facets or fewer around meets at
+    SHARP_ANGLE or more, as a prism's sides do: it is taken for one."""
+    if tdim == 2:
+        return {}
+    key = np.sort(surface.facets, axis=1)
+    index = {tuple(row): i for i, row in enumerate(key.tolist())}
+    out = {}
+    for dim, tag in gmsh.model.getPhysicalGroups(tdim - 1):
+        rows = []
+        for entity in gmsh.model.getEntitiesForPhysicalGroup(dim, tag):
+            _, nodes = gmsh.model.mesh.getElementsByType(CELLS[tdim - 1][0], entity)
+            rows += [index.get(tuple(r)) for r in np.sort(np.asarray(nodes, np.int64).reshape(-1, tdim), axis=1).tolist()]
+        mine = np.zeros(len(key), bool)
+        mine[[r for r in rows if r is not None]] = True
+        inside = mine[edges.facets[:, 0]] & (edges.facets[:, 1] >= 0) & mine[np.maximum(edges.facets[:, 1], 0)]
+        bent = angles[inside & (angles < SHARP_ANGLE)]
+        if len(bent) and float(np.mean(bent)) > COARSE_ANGLE:
+            out[gmsh.model.getPhysicalName(dim, tag) or str(tag)] = float(np.mean(bent))
+    return out
+
+
+# --------------------------------------------------------------------------- the midpoints
+
+
+def midpoint_targets(surface: Surface, edges: Edges, patches: np.ndarray, angles: np.ndarray,
+                     position: np.ndarray, tdim: int) -> np.ndarray:
+    """Where each surface edge's midpoint goes (module docstring), capped at MOVE_LIMIT
+    of its edge."""
+    a, b = position[edges.ends[:, 0]], position[edges.ends[:, 1]]
+    chord = (a + b) / 2
+    smooth = (edges.facets[:, 1] >= 0) & (angles < FEATURE_ANGLE) if tdim == 3 else np.ones(len(a), bool)
+    out = chord.copy()
+    if smooth.any():
+        normals = _patch_normals(surface, patches, position)
+        patch = patches[edges.facets[smooth, 0]]
+        na = normals[(patch, edges.ends[smooth, 0])]
+        nb = normals[(patch, edges.ends[smooth, 1])]
+        d = b[smooth] - a[smooth]
+        out[smooth] = chord[smooth] - (np.einsum("ij,ij->i", d, na)[:, None] * na
+                                       - np.einsum("ij,ij->i", d, nb)[:, None] * nb) / 8
+    if tdim == 3 and (~smooth).any():
+        out[~smooth] = _feature_midpoints(edges, ~smooth, position)
+    move = out - chord
+    limit = MOVE_LIMIT * np.linalg.norm(b - a, axis=1)
+    size = np.linalg.norm(move, axis=1)
+    return chord + move * np.minimum(1.0, limit / np.maximum(size, 1e-300))[:, None]
+
+
+class _PatchNormals(dict):
+    """(patch, node tag) -> unit normal, looked up for arrays of both."""
+
+    def __getitem__(self, key):
+        patch, node = key
+        return np.array([dict.__getitem__(self, (int(p), int(n))) for p, n in zip(patch, node)])
+
+
+def _patch_normals(surface: Surface, patches: np.ndarray, position: np.ndarray) -> _PatchNormals:
+    """Each patch's vertex normals: the mean of its facets' normals at the vertex, each
+    weighted by the facet's angle there (independent of how the facets are cut)."""
+    tdim = surface.facets.shape[1]
+    sums: dict[tuple[int, int], np.ndarray] = {}
+    for corner in range(tdim):
+        node = surface.facets[:, corner]
+        if tdim == 3:
+            u = position[surface.facets[:, (corner + 1) % 3]] - position[node]
+            v = position[surface.facets[:, (corner + 2) % 3]] - position[node]
+            cosine = np.einsum("ij,ij->i", u, v) / np.maximum(np.linalg.norm(u, axis=1) * np.linalg.norm(v, axis=1), 1e-300)
+            weight = np.arccos(np.clip(cosine, -1.0, 1.0))
+        else:
+            weight = np.ones(len(node))
+        for p, n, w, normal in zip(patches, node, weight, surface.normals):
+            key = (int(p), int(n))
+            sums[key] = sums.get(key, 0.0) + w * normal
+    return _PatchNormals({k: v / max(np.linalg.norm(v), 1e-300) for k, v in sums.items()})
+
+
+def _feature_midpoints(edges: Edges, feature: np.ndarray, position: np.ndarray) -> np.ndarray:
+    """Midpoints of feature edges on the Hermite curve along their feature lines."""
+    ends = edges.ends[feature]
+    neighbours: dict[int, list[int]] = {}
+    for a, b in ends:
+        neighbours.setdefault(int(a), []).append(int(b))
+        neighbours.setdefault(int(b), []).append(int(a))
+    a, b = position[ends[:, 0]], position[ends[:, 1]]
+    chord = b - a
+    length = np.linalg.norm(chord, axis=1)
+    direction = chord / np.maximum(length, 1e-300)[:, None]
+    ta = np.array([_tangent(int(n), neighbours, position, d) for n, d in zip(ends[:, 0], direction)])
+    tb = np.array([_tangent(int(n), neighbours, position, d) for n, d in zip(ends[:, 1], direction)])
+    return (a + b) / 2 + length[:, None] * (ta - tb) / 8
+
+
+def _tangent(node: int, neighbours: dict, position: np.ndarray, direction: np.ndarray) -> np.ndarray:
+    """The feature line's unit tangent at ``node``, oriented along ``direction``: from its
+    previous vertex to its next where exactly two feature edges meet, else the chord."""
+    near = neighbours[node]
+    if len(near) != 2:
+        return direction
+    t = position[near[1]] - position[near[0]]
+    t /= max(np.linalg.norm(t), 1e-300)
+    return t if t @ direction >= 0 else -t
+
+
+def _set_order_2(gmsh, tdim: int) -> np.ndarray:
+    """gmsh's setOrder(2), which numbers the nodes anew (elements keep their order and
+    their vertices' order): old node tag -> new one."""
+    _, before = gmsh.model.mesh.getElementsByType(CELLS[tdim][0])
+    before = np.asarray(before, np.int64).reshape(-1, tdim + 1)
+    gmsh.model.mesh.setOrder(2)
+    _, after = gmsh.model.mesh.getElementsByType(CELLS[tdim][1])
+    after = np.asarray(after, np.int64).reshape(len(before), -1)[:, : tdim + 1]
+    renumber = np.full(int(before.max()) + 1, -1, np.int64)
+    renumber[before] = after
+    return renumber
+
+
+def _midpoint_nodes(gmsh, tdim: int) -> dict[tuple[int, int], int]:
+    """After setOrder(2): (sorted edge ends) -> the node tag of the edge's midpoint."""
+    _, nodes = gmsh.model.mesh.getElementsByType(CELLS[tdim][1])
+    rows = np.asarray(nodes, np.int64).reshape(-1, len(CELLS[tdim][2]) + tdim + 1)
+    out: dict[tuple[int, int], int] = {}
+    for i, j, m in CELLS[tdim][2]:
+        lo, hi = np.minimum(rows[:, i], rows[:, j]), np.maximum(rows[:, i], rows[:, j])
+        out.update(zip(zip(lo.tolist(), hi.tolist()), rows[:, m].tolist()))
+    return out

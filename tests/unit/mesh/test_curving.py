@@ -1,0 +1,167 @@
+"""Straight-sided meshes curved on load (mesh/curving.py): surface midpoints land on the
+smooth surfaces the facets stand for, flat faces and straight feature edges stay, and a
+scene loaded from such a mesh is curved unless ``curve = "off"``."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import fenics_elasto  # noqa: F401  (dolfinx_solver first)
+from fenics_elasto.mesh import curving
+from fenics_elasto.mesh.gmsh_models import GmshModel, node_positions, write_msh
+
+BALL = (np.array([0.3, 0.2, -0.1]), 1.5)
+TUBE = (np.array([2.2, 1.2]), 0.6, (-1.0, 1.5))  # axis (y, z) along x, radius, x range
+PROBLEM = """mesh = "box.msh"
+degree = {degree}
+{curve}
+[materials.ball]
+E = {{ estimate = true, initial = 30.0, bounds = [2.0, 300.0] }}
+nu = 0.4
+[materials.tissue]
+E = 10.0
+nu = 0.4
+[boundary]
+fixed = ["skin"]
+loaded = ["tube"]
+matched = ["tube", "ball_surface"]
+"""
+
+
+def _ball(x):
+    return np.linalg.norm(x - BALL[0], axis=1) - BALL[1]
+
+
+def _tube(x):
+    return np.hypot(x[:, 1] - TUBE[0][0], x[:, 2] - TUBE[0][1]) - TUBE[1]
+
+
+def _box_with_ball_and_tube(gmsh, size: float) -> None:
+    """A 6 x 6 x 6 box with a ball region and a tube cavity with flat caps, meshed by
+    plain gmsh at order 1 (straight-sided), with the groups of a user's scene."""
+    occ = gmsh.model.occ
+    box = occ.addBox(-3, -3, -3, 6, 6, 6)
+    tube = occ.addCylinder(TUBE[2][0], *TUBE[0], TUBE[2][1] - TUBE[2][0], 0, 0, TUBE[1])
+    cut, _ = occ.cut([(3, box)], [(3, tube)])
+    occ.fragment(cut, [(3, occ.addSphere(*BALL[0], BALL[1]))])
+    occ.synchronize()
+    volumes = [t for _, t in gmsh.model.getEntities(3)]
+    ball = [t for t in volumes if abs(occ.getMass(3, t) - 4 / 3 * np.pi * BALL[1] ** 3) < 1e-3]
+    gmsh.model.addPhysicalGroup(3, [t for t in volumes if t not in ball], name="tissue")
+    gmsh.model.addPhysicalGroup(3, ball, name="ball")
+    faces = {"ball_surface": [t for _, t in gmsh.model.getBoundary([(3, ball[0])], oriented=False)], "tube": [], "skin": []}
+    for _, face in gmsh.model.getBoundary([(3, t) for t in volumes if t not in ball], oriented=False):
+        if face not in faces["ball_surface"]:
+            x0, y0, z0, x1, y1, z1 = gmsh.model.getBoundingBox(2, face)
+            faces["skin" if max(abs(x0), abs(x1), abs(y0), abs(y1), abs(z0), abs(z1)) > 2.99 else "tube"].append(face)
+    for name, tags in faces.items():
+        gmsh.model.addPhysicalGroup(2, tags, name=name)
+    gmsh.option.setNumber("Mesh.MeshSizeMax", size)
+    gmsh.model.mesh.generate(3)
+
+
+def _surface_as_points(gmsh, surface: curving.Surface) -> set:
+    position = node_positions(gmsh)
+    return {tuple(np.round(position[f], 9).ravel().tolist()) for f in surface.facets}
+
+
+def test_midpoints_land_on_the_smooth_surfaces_and_flat_faces_stay():
+    """On the ball (an interface) and the tube (a cavity with flat caps): the curved
+    midpoints lie over 8x closer to the exact surfaces than the chords' midpoints
+    (measured: 22x on the ball, 12x on the tube, whose rims follow their circles); the
+    box's faces and edges and the tube's caps stay exactly flat."""
+    with GmshModel("curving") as gmsh:
+        _box_with_ball_and_tube(gmsh, 0.45)
+        assert curving.straight_sided(gmsh, 3)
+        before = curving.mesh_surfaces(gmsh, 3, node_positions(gmsh))
+        points = _surface_as_points(gmsh, before)
+        edges = set()
+        for f in points:
+            p = np.reshape(f, (3, 3))
+            edges |= {tuple(sorted((tuple(p[i]), tuple(p[j])))) for i, j in ((0, 1), (1, 2), (2, 0))}
+        edge_points = {tuple(np.ravel(e)) for e in edges}
+        done = curving.curve_mesh(gmsh, 3)
+        assert done is not None and done.moved > 1000 and done.largest_share < curving.MOVE_LIMIT + 1e-9
+        assert not curving.straight_sided(gmsh, 3)
+        for level in (_ball, _tube):
+            curved, chord = _curved_and_chord(gmsh, level, edge_points)
+            assert len(curved) > 100 and np.mean(curved) < np.mean(chord) / 8, (np.mean(curved), np.mean(chord))
+        position = node_positions(gmsh)
+        for axis in range(3):  # the box's six faces: every node on them exactly flat
+            for side in (-3.0, 3.0):
+                near = np.abs(position[:, axis] - side) < 1e-3
+                assert np.abs(position[near, axis] - side).max() < 1e-12
+        caps = [(np.abs(position[:, 0] - x) < 1e-3) & (_tube(position) < 1e-9) for x in TUBE[2]]
+        for cap, x in zip(caps, TUBE[2]):
+            assert cap.sum() > 10 and np.abs(position[cap, 0] - x).max() < 1e-12
+
+
+def _curved_and_chord(gmsh, level, edge_points: set) -> tuple[np.ndarray, np.ndarray]:
+    """|level| at the midpoints of surface edges on the level set, and at their chords."""
+    position = node_positions(gmsh)
+    _, nodes = gmsh.model.mesh.getElementsByType(11)
+    rows = np.asarray(nodes, np.int64).reshape(-1, 10)
+    curved, chord = [], []
+    for a, b, m in curving.CELLS[3][2]:
+        ends = position[rows[:, [a, b]]]
+        on = (np.abs(level(ends[:, 0])) < 1e-6) & (np.abs(level(ends[:, 1])) < 1e-6)
+        for (p, q), mid in zip(ends[on], position[rows[on, m]]):
+            key = tuple(np.ravel(sorted((tuple(np.round(p, 9)), tuple(np.round(q, 9))))))
+            if key in edge_points:
+                curved.append(abs(level(mid[None])[0]))
+                chord.append(abs(level(((p + q) / 2)[None])[0]))
+    return np.array(curved), np.array(chord)
+
+
+def test_a_flat_body_is_left_alone():
+    """A box of two boxes: every surface flat, nothing to curve (order 1 kept)."""
+    with GmshModel("flat") as gmsh:
+        occ = gmsh.model.occ
+        occ.fragment([(3, occ.addBox(0, 0, 0, 2, 1, 1))], [(3, occ.addBox(0.5, 0.2, 0.2, 0.5, 0.5, 0.5))])
+        occ.synchronize()
+        gmsh.model.addPhysicalGroup(3, [t for _, t in gmsh.model.getEntities(3)], name="body")
+        gmsh.option.setNumber("Mesh.MeshSizeMax", 0.3)
+        gmsh.model.mesh.generate(3)
+        assert curving.curve_mesh(gmsh, 3) is None
+        assert curving.straight_sided(gmsh, 3)
+
+
+def test_coarse_surfaces_are_named():
+    """Meshed at 1.1, the ball (radius 1.5) has facets meeting at over 20 degrees: named
+    as too coarse; at 0.45 no surface is."""
+    with GmshModel("coarse") as gmsh:
+        _box_with_ball_and_tube(gmsh, 1.1)
+        done = curving.curve_mesh(gmsh, 3)
+        assert "ball_surface" in done.coarse and np.degrees(done.coarse["ball_surface"]) > 20, done.coarse
+    with GmshModel("fine") as gmsh:
+        _box_with_ball_and_tube(gmsh, 0.45)
+        assert curving.curve_mesh(gmsh, 3).coarse == {}
+
+
+@pytest.fixture(scope="module")
+def straight_scene(tmp_path_factory) -> Path:
+    folder = tmp_path_factory.mktemp("straight")
+    with GmshModel("scene") as gmsh:
+        _box_with_ball_and_tube(gmsh, 0.6)
+        write_msh(gmsh, folder / "box.msh", 3)
+    return folder
+
+
+@pytest.mark.parametrize("curve, degree, curved", [("", 2, True), ('curve = "off"', 2, False), ("", 1, False)])
+def test_a_scene_is_curved_on_load_unless_off(straight_scene, curve, degree, curved):
+    """load_scene curves a straight-sided P2 scene (its geometry becomes order 2, and
+    every node of the matched groups is matched); not with curve = "off", nor for P1."""
+    from fenics_elasto.model.dofs import DofLayout
+    from fenics_elasto.model.elasticity import ElasticModel
+    from fenics_elasto.model.observation import matched_vertices_only
+    from fenics_elasto.model.scene import load_scene
+
+    path = straight_scene / f"problem_{degree}_{bool(curve)}.toml"
+    path.write_text(PROBLEM.format(degree=degree, curve=curve))
+    scene = load_scene(path)
+    assert (scene.mesh.geometry.cmaps[0].degree == 2) == curved
+    assert matched_vertices_only(scene, ElasticModel(scene)) == (degree == 2 and not curved)
+    ball = DofLayout(scene).dof_coords[DofLayout(scene).boundary_blocks(["ball_surface"])]
+    gap = np.abs(_ball(ball))
+    assert gap.max() < (0.02 if curved else 0.1)
