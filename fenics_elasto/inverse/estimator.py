@@ -203,8 +203,9 @@ def estimate(problem: InverseProblem, options: Options | None = None, basis: np.
     options = options or Options.from_scene(scene)
     phi_undeformed = check_overlap(problem)
     extent_warnings = check_extent(problem)
-    warnings = list(scene.warnings) + [w for w in [check_determined(problem, basis, options, choose_inner(problem, options, basis)),
-                                                   None if basis is None else reach_warning(held_out, basis.shape[1])] if w]
+    checks = [check_determined(problem, basis, options, choose_inner(problem, options, basis)),
+              None if basis is None else reach_warning(held_out, basis.shape[1])]
+    warnings = list(scene.warnings) + [w for w in checks if w]
     estimator = Estimator(problem, options, basis)
     try:
         return _run(estimator, warnings, extent_warnings, phi_undeformed, held_out, start)
