@@ -9,7 +9,8 @@ directions ``Surface.curvature_directions`` gives (the normal of a face, the two
 directions across an edge, all at a vertex; all for a landmark) -- exact for a
 piecewise-linear target, which makes Gauss-Newton a Newton method here.
 
-Weights: surface rows 1; landmark rows ``landmark_weight`` (see ``landmark_weight``).
+Weights: surface rows 1; landmark rows ``landmark_weight`` (see ``landmark_weight``: from
+``[target] landmark_noise`` beside the surfaces' noise, by maximum likelihood).
 """
 
 from __future__ import annotations
@@ -182,11 +183,27 @@ def read_target_landmarks(scene) -> tuple[np.ndarray, np.ndarray] | None:
     return read_landmarks(scene.path.parent / spec["landmarks"], scene.gdim)
 
 
-def landmark_weight(spec: dict, surface_rows: int, landmark_rows: int) -> float:
-    """The weight of a landmark row: ``[target] landmark_weight`` if given, else 1 -- each
-    observed coordinate counts alike, the maximum-likelihood weight when a landmark's
-    position is as certain as a surface point's."""
-    return float(spec["landmark_weight"] or 1.0)
+def landmark_weight(spec: dict, surfaces: list[Surface]) -> float:
+    """The weight of a landmark row beside a surface row's 1: ``[target] landmark_weight``
+    if given; else with ``landmark_noise`` (the markers' localisation std) the maximum-
+    likelihood ratio (sigma_surface / landmark_noise)^2, sigma_surface being ``[target]
+    noise`` if given, else the noise the target surfaces show (their roughness), but at
+    least SURFACE_FLOOR of their mean edge -- a surface is not known better than a tenth of
+    its own sampling however smooth it looks; else 1: a landmark as certain as a surface
+    point."""
+    if spec["landmark_weight"] is not None:
+        return float(spec["landmark_weight"])
+    if spec.get("landmark_noise") is None:
+        return 1.0
+    sigma = spec["noise"]
+    if sigma is None and surfaces:
+        sigma = max(max(noise(s) for s in surfaces), SURFACE_FLOOR * float(np.mean([s.mean_edge for s in surfaces])))
+    if sigma is None:  # landmarks alone: their own noise sets the scale
+        return 1.0
+    return float((sigma / spec["landmark_noise"]) ** 2)
+
+
+SURFACE_FLOOR = 0.1  # landmark_weight: the least noise a target surface is credited with, in its mean edges
 
 
 def target_surface(path: Path, gdim: int, smooth: str) -> Surface:
@@ -233,6 +250,6 @@ def build_misfit(scene, node_groups: np.ndarray, landmarks: tuple | None) -> Mis
     else:  # landmarks alone: the matched nodes observe nothing
         blocks.append((len(node_groups), Unobserved(), 0.0))
     if landmarks is not None:
-        surface_rows = blocks[0][0] if blocks[0][2] > 0 else 0
-        blocks.append((len(landmarks[1]), PointTerm(landmarks[1]), landmark_weight(spec, surface_rows, len(landmarks[1]))))
+        surfaces = blocks[0][1].surfaces if isinstance(blocks[0][1], SurfaceTerm) else []
+        blocks.append((len(landmarks[1]), PointTerm(landmarks[1]), landmark_weight(spec, surfaces)))
     return Misfit(blocks)
