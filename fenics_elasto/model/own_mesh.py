@@ -87,8 +87,9 @@ def facet_groups(mesh, facet_tags, groups: Mapping[str, int | Sequence[int]]) ->
         require(values.ndim == 1 and values.size > 0 and np.issubdtype(values.dtype, np.integer),
                 f"{SOURCE}: groups.{name}: expected a facet tag or a list of them (integers), got {tags!r}")
         facets = np.unique(facet_tags.indices[np.isin(facet_tags.values, values)]).astype(np.int32)
-        require(_global_any(mesh.comm, len(facets) > 0), f"{SOURCE}: groups.{name}: no facet carries tag(s) "
-                                                         f"{values.tolist()} (facet_tags has {sorted(set(facet_tags.values.tolist()))})")
+        have = sorted(set(facet_tags.values.tolist()))
+        require(_global_any(mesh.comm, len(facets) > 0),
+                f"{SOURCE}: groups.{name}: no facet carries tag(s) {values.tolist()} (facet_tags has {have})")
         out[str(name)] = facets
     return out
 
