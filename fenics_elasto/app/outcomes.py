@@ -100,14 +100,17 @@ class Estimate(Solution):
 
     @property
     def warnings(self) -> list[str]:
+        """What the estimate found worth a warning, one line each."""
         return list(self.record["warnings"])
 
     @property
     def forces(self) -> np.ndarray:
+        """The recovered nodal forces of the loaded nodes, flat (node by node)."""
         return self.outcome.forces
 
     @property
     def interrupted(self) -> bool:
+        """Stopped by Ctrl-C: the answer is the best so far."""
         return bool(self.record["interrupted"])
 
     def __str__(self) -> str:

@@ -41,6 +41,8 @@ class Parameter:
 
 @dataclass
 class Material:
+    """A region's material: its name, its cell tag, E and nu."""
+
     name: str
     tag: int
     E: Parameter
@@ -49,6 +51,12 @@ class Material:
 
 @dataclass
 class Scene:
+    """A mesh with named regions (each with its material) and named facet groups, and the
+    problem's settings: which groups are clamped, loaded and matched, the target, the
+    optimiser, the solver. Made by ``load_scene`` (a problem.toml and its .msh) or
+    ``Scene.from_mesh`` (a DOLFINx mesh and its MeshTags); ``path`` names it in
+    messages, and relative file names in its settings are relative to its folder."""
+
     path: Path
     mesh: dolfinx.mesh.Mesh
     cell_tags: dolfinx.mesh.MeshTags
