@@ -853,3 +853,58 @@ def retarget(problem, target: dict, name: str = "problem_independent.toml") -> P
 
 def _relative(path, base: Path) -> str:
     return os.path.relpath(Path(path).resolve(), base.resolve())
+
+
+# --------------------------------------------------------------------------- a user's own source mesh
+
+PLAIN_PROBLEM = """\
+# The phantom as a user would bring it: meshed by plain gmsh, not by fenics_elasto.
+mesh = "source.msh"
+degree = 2
+
+[materials.prostate]
+E  = {{ estimate = true, initial = 30.0, bounds = [2.0, 300.0] }}
+nu = {nu}
+
+[materials.tissue]
+E  = {E}
+nu = {nu}
+
+[boundary]
+fixed   = ["bones"]
+loaded  = ["bladder", "rectum"]
+matched = ["bladder", "prostate_surface", "rectum"]
+"""
+
+
+def plain_source(out, order: int, seed: int = 0, organs_size: float = 0.45, far: float = 1.5,
+                 E: float = 10.0, nu: float = 0.4) -> Path:
+    """The phantom of ``phantom_organs(seed)`` meshed the way most users' meshes are
+    made: gmsh's default algorithms at ``order`` 1 (straight-sided tetrahedra) or 2
+    (curved, untangled by gmsh's high-order optimiser), element size ``organs_size``
+    at the bladder, rectum and prostate and ``far`` elsewhere (about 3k vertices at
+    the defaults). Returns the path of a problem.toml beside ``source.msh`` (no
+    [target] table: ``retarget`` adds one)."""
+    from fenics_elasto.mesh.builtin import phantom_organs
+
+    params = {"order": order, "seed": seed, "organs": organs_size, "far": far, "E": E, "nu": nu}
+
+    def make(folder):
+        with gmsh_model("plain-source") as gmsh:
+            faces = _phantom_geometry(gmsh, phantom_organs(seed))
+            field = gmsh.model.mesh.field
+            near = faces["bladder"] + faces["rectum"] + faces["prostate_surface"]
+            field.setAsBackgroundMesh(_graded(field, near, organs_size, far))
+            for option, value in (("MeshSizeExtendFromBoundary", 0), ("MeshSizeFromPoints", 0),
+                                  ("MeshSizeFromCurvature", 0), ("ElementOrder", order),
+                                  ("HighOrderOptimize", 2 if order == 2 else 0)):
+                gmsh.option.setNumber(f"Mesh.{option}", value)
+            gmsh.option.setNumber("General.NumThreads", 1)
+            gmsh.model.mesh.generate(3)
+            gmsh.option.setNumber("Mesh.Binary", 0)
+            gmsh.write(str(folder / "source.msh"))
+        problem = folder / "problem.toml"
+        problem.write_text(PLAIN_PROBLEM.format(E=E, nu=nu))
+        return {"problem": problem, "mesh": folder / "source.msh"}
+
+    return cached(out, "plain-source", params, make)["problem"]
