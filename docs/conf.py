@@ -24,10 +24,11 @@ exclude_patterns = ["_build", "Thumbs.db", ".DS_Store"]
 # so a type hint may find two targets for one class; either is right.
 suppress_warnings = ["ref.python"]
 
-# The docstrings speak prose, not reST roles: sign-ups only, members in source order.
+# Members in source order; type hints in the signature, names without their modules.
 autodoc_member_order = "bysource"
-autodoc_typehints = "description"
-autodoc_default_options = {"members": True, "show-inheritance": False}
+autodoc_typehints = "signature"
+autodoc_typehints_format = "short"
+autodoc_preserve_defaults = True
 napoleon_google_docstring = True
 napoleon_numpy_docstring = True
 
