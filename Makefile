@@ -68,7 +68,7 @@ bench-adjoint: $(STAMP)
 # ruff: pyflakes, pycodestyle, pyupgrade and bugbear checks; mypy over the package
 # (both configured in pyproject.toml).
 lint: $(STAMP)
-	$(PY) -m ruff check fenics_elasto tests benchmarks demos
+	$(PY) -m ruff check fenics_elasto tests benchmarks demos docs
 	$(PY) -m mypy fenics_elasto
 
 clean:
