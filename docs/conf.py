@@ -19,6 +19,7 @@ release = version = metadata.version("fenics_elasto")
 extensions = ["myst_parser", "sphinx.ext.autodoc", "sphinx.ext.napoleon", "sphinx.ext.mathjax"]
 myst_enable_extensions = ["dollarmath", "amsmath"]
 myst_heading_anchors = 3
+highlight_language = "none"  # a block without a language (commands, output) stays plain text
 exclude_patterns = ["_build", "Thumbs.db", ".DS_Store"]
 # The package re-exports names from its modules (fe.Scene is fenics_elasto.model.scene.Scene),
 # so a type hint may find two targets for one class; either is right.
