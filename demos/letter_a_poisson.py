@@ -44,6 +44,7 @@
 import time
 from pathlib import Path
 
+import matplotlib.pyplot as plt
 import numpy as np
 
 import fenics_elasto  # noqa: F401  (first: it sets up the DOLFINx wheel's MPI and PETSc)
@@ -64,13 +65,14 @@ cases = (0.1, 0.25, 0.4, 0.49)
 # A target must not come from the mesh the estimate runs on, or the mesh's own error
 # would cancel. So each "measured" outline is simulated on a finer mesh ($h = 0.2$)
 # with the true $\nu$; `build_scene` writes the built-in letter's gmsh mesh and a
-# problem file whose `[boundary.displacement]` table moves the top by $(0.4, -0.8)$. Only the outline
-# surface is kept.
+# problem file whose `[boundary.displacement]` table moves the top by $(0.4, -0.8)$.
+# Only the outline surface is kept.
 
 
 # %%
 def make_target(nu: float) -> Path:
-    fine = load_scene(build_scene("letter-a", out / "fine", size=0.2), [f"materials.letter.nu={nu}"])
+    fine_mesh = build_scene("letter-a", out / "fine", size=0.2)
+    fine = load_scene(fine_mesh, [f"materials.letter.nu={nu}"])
     write_matched_surfaces(out / f"target_nu{nu}", fine, simulate(fine).u)
     return out / f"target_nu{nu}" / "surface.vtp"
 
@@ -94,10 +96,12 @@ for nu in cases:
     result = estimate(problem)
     seconds = time.perf_counter() - start
     found = result["materials"]["letter"]["nu"]
-    rows.append((nu, found, 100 * abs(found - nu) / nu, seconds, result["iterations"]["outer"],
-                 result["iterations"]["inner"], result["factorizations"]))
+    iterations = result["iterations"]
+    rows.append((nu, found, 100 * abs(found - nu) / nu, seconds,
+                 iterations["outer"], iterations["inner"], result["factorizations"]))
 
-print(f"letter A, P2, source h = 0.4 ({problem.model.dofs.num_dofs} dofs, {problem.force_dofs} force dofs), "
+dofs = problem.model.dofs.num_dofs
+print(f"letter A, P2, source h = 0.4 ({dofs} dofs, {problem.force_dofs} force dofs),",
       "target h = 0.2, outline only")
 print("| true nu | recovered | error % | time s | outer it. | inner it. | factorizations |")
 print("|---|---|---|---|---|---|---|")
@@ -132,14 +136,9 @@ def profile(problem: InverseProblem, values: np.ndarray) -> list[float]:
 
 
 grid = np.linspace(0.02, 0.495, 40)
-curves = {nu: (profile(problems[nu], grid), found) for nu, (_, found, *_) in zip(cases, rows)}
+curves = {nu: (profile(problems[nu], grid), row[1]) for nu, row in zip(cases, rows)}
 
 # %%
-import matplotlib  # noqa: E402
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-
 fig, axes = plt.subplots(1, len(curves), figsize=(4 * len(curves), 3.6))
 for ax, (nu, (phi, found)) in zip(axes, curves.items()):
     ax.semilogy(grid, phi, "-", color="C0")
