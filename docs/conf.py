@@ -35,7 +35,8 @@ napoleon_numpy_docstring = True
 
 html_theme = "furo"
 html_title = f"fenics_elasto {release}"
-html_static_path: list[str] = []
+html_static_path = ["_static"]
+html_css_files = ["tables.css"]
 
 # The demos are jupytext percent scripts in demos/ (DOLFINx's way): each becomes a
 # Markdown page in docs/demos/ before Sphinx reads the sources. The pages are generated
