@@ -36,11 +36,13 @@ demo-prostate: $(STAMP)
 demo-prostate-quick: $(STAMP)
 	$(PY) demos/real_prostate.py --quick --out out/prostate-quick
 
+# On both cores (pytest-xdist; the slow tests first, so that none starts last); the
+# DOLFINx JIT cache is shared by the workers (its compiles are locked per form).
 test: $(STAMP)
-	$(PY) -m pytest -q --durations=15
+	$(PY) -m pytest -q -n 2 --dist loadgroup --durations=15
 
 test-fast: $(STAMP)
-	$(PY) -m pytest -q -m "not slow"
+	$(PY) -m pytest -q -n 2 -m "not slow"
 
 # The demos' own variants as tests (minutes each; not part of make test).
 test-demo: $(STAMP)

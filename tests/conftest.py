@@ -72,3 +72,9 @@ def logged(lines: list):
     finally:
         log.removeHandler(keep)
         log.setLevel(level)
+
+
+def pytest_collection_modifyitems(items):
+    """Slow tests first: on two workers (make test), a long test that starts last would
+    set the suite's time alone."""
+    items.sort(key=lambda item: item.get_closest_marker("slow") is None)

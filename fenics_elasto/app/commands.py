@@ -9,37 +9,16 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
 from fenics_elasto.util.errors import on_root, require
 from fenics_elasto.util.logs import log
 from fenics_elasto.files.outputs import prepare_file, prepare_folder
-
-
-def reduced_basis(problem) -> tuple[np.ndarray | None, float | None]:
-    """(W, the share of held-out examples' energy the bases kept) from the scene's
-    [reduction] table (bases file and rank), or (None, None)."""
-    from fenics_elasto.inverse.reduction.bases import load_bases
-
-    table = problem.scene.config["reduction"]
-    return (None, None) if table is None else load_bases(problem.scene.path.parent / table["bases"], problem,
-                                                         table["rank"])
+from fenics_elasto.app import api
 
 
 def run_mesh(name: str, out: Path, size=None, seed=None, atlas_mesh: Path | None = None, **detail) -> Path:
     """The ``mesh`` command: a built-in scene (.msh + problem.toml) into ``out``, checked
     and locked first; gmsh on rank 0. Returns the problem.toml path."""
-    from mpi4py import MPI
-
-    from fenics_elasto.mesh.atlas import atlas_surfaces
-    from fenics_elasto.mesh.builtin import build_scene
-
-    def build():
-        require(atlas_mesh is None or name == "prostate-phantom", "--atlas: only prostate-phantom takes an atlas")
-        atlas = atlas_surfaces(atlas_mesh) if atlas_mesh else None
-        return build_scene(name, out, size, seed, atlas, **detail)
-
-    with prepare_folder(out):  # a bad --out costs nothing; a second run into it waits its turn
-        return on_root(MPI.COMM_WORLD, build)
+    return api.build_scene(name, out, size, seed, atlas_mesh, **detail)
 
 
 def run_scene(spec: Path, out: Path, size=None) -> Path:
@@ -53,41 +32,34 @@ def run_scene(spec: Path, out: Path, size=None) -> Path:
 
 
 def run_simulate(problem_path: Path, out: Path, overrides=()) -> dict:
+    """The ``simulate`` command: result.json, the displacement, surfaces, the picture."""
     from fenics_elasto.app.results import write_solution
     from fenics_elasto.app.render import caption
     from fenics_elasto.model.scene import load_scene
-    from fenics_elasto.model.simulate import simulate
 
     with prepare_folder(out) as folder:
         scene = load_scene(problem_path, overrides, command="simulate")
-        sim = simulate(scene)
-        with folder.writing(sim.result):
-            write_solution(folder, scene, sim.u, title=caption(sim.result, Path(out).name, units(scene)))
-    log.info(f"dofs {sim.result['dofs']}, max |u| {sim.result['max_displacement']:.4g}, "
-             f"{sim.result['wall_time_s']:.2f} s -> {out}")
-    return sim.result
+        sim = api.simulate(scene)
+        with folder.writing(sim.record):
+            write_solution(folder, scene, sim.u, title=caption(sim.record, Path(out).name, units(scene)))
+    log.info(f"dofs {sim.record['dofs']}, max |u| {sim.record['max_displacement']:.4g}, "
+             f"{sim.record['wall_time_s']:.2f} s -> {out}")
+    return sim.record
 
 
 def run_estimate(problem_path: Path, out: Path, overrides=(), check_mesh: bool = False):
     """The ``estimate`` command: result.json, fields, surfaces, forces.csv, pictures;
     ``check_mesh``: also on the source refined once, and how far the answer moved."""
-    from fenics_elasto.inverse.estimator import estimate
-    from fenics_elasto.inverse.objective import InverseProblem
     from fenics_elasto.model.scene import load_scene
 
     with prepare_folder(out) as folder:
         scene = load_scene(problem_path, overrides, command="estimate")
-        problem = InverseProblem(scene)
-        basis, held_out = reduced_basis(problem)
-        log.info(f"estimate {', '.join(problem.params.labels)}: {problem.model.dofs.num_dofs} dofs, {problem.force_dofs} "
-                 "force dofs" + (f" reduced to rank {basis.shape[1]}" if basis is not None else "")
-                 + f", {problem.observation.node_count} matched nodes"
-                 + (f", {len(problem.misfit.landmark_rows())} landmarks" if len(problem.misfit.landmark_rows()) else ""))
-        result = estimate(problem, basis=basis, held_out=held_out)
+        answer = api.estimate(scene)
+        result = answer.outcome
         if check_mesh and not result["interrupted"]:
-            result.record["mesh_check"] = mesh_check(problem_path, folder.path, overrides, result, basis)
+            result.record["mesh_check"] = mesh_check(problem_path, folder.path, overrides, result, answer.basis)
         with folder.writing(result.record):
-            write_estimate(folder, problem, result)
+            write_estimate(folder, answer.problem, result)
     distance = result["surface_distance"]
     log.info(f"{title(result)}; rms distance {distance['rms']:.3g}, "
              f"{result['factorizations']} factorizations, {result['wall_time_s']:.1f} s -> {out}")
@@ -171,9 +143,6 @@ def run_train(patients: list, out: Path, rank: int, atlas_mesh: Path | None = No
     """Bases from example targets: ``patients`` = [(problem.toml, [example, ...]), ...]
     (several only around an atlas), and/or from synthetic examples of the scene
     (``generator``: synthetic.Generator). Writes BASES.npz and its variance plot (.png)."""
-    from fenics_elasto.mesh.atlas import atlas_surfaces
-    from fenics_elasto.inverse.objective import InverseProblem
-    from fenics_elasto.inverse.reduction.bases import train_atlas_bases, train_bases
     from fenics_elasto.model.scene import load_scene
 
     require(len(patients) == 1 or atlas_mesh, "train: several training scenes need --atlas (their shared mesh)")
@@ -181,15 +150,28 @@ def run_train(patients: list, out: Path, rank: int, atlas_mesh: Path | None = No
         require(examples or generator is not None, f"train: no examples given for {problem}")
     bases_file = prepare_file(out, ".npz")
     picture = prepare_file(bases_file.path.with_suffix(".png"), ".png")
-    problems = [(InverseProblem(load_scene(p, overrides, command="train"), target=False), e) for p, e in patients]
+    scenes = [(load_scene(p, overrides, command="train"), e) for p, e in patients]
+    if atlas_mesh:
+        bases = train_on_atlas(scenes, atlas_mesh, rank)
+    else:
+        scene, examples = scenes[0]
+        settings = {} if generator is None else {"synthetic": generator.count, "seed": generator.seed,
+                                                 "length": generator.length, "amplitude": generator.amplitude}
+        bases = api.train(scene, rank=rank, examples=examples, **settings)
+    return save_bases(bases, bases_file, picture)
+
+
+def train_on_atlas(scenes: list, atlas_mesh: Path, rank: int):
+    """Bases in the numbering of the atlas every training scene was built around."""
+    from fenics_elasto.mesh.atlas import atlas_surfaces
+    from fenics_elasto.inverse.objective import InverseProblem
+    from fenics_elasto.inverse.reduction.bases import train_atlas_bases
+
+    problems = [(InverseProblem(scene, target=False), e) for scene, e in scenes]
     count = sum(len(e) for _, e in problems)
     log.info(f"train: {len(problems)} scene(s), {count} examples, {problems[0][0].force_dofs} force dofs, rank {rank}")
-    if atlas_mesh:
-        atlas = atlas_surfaces(atlas_mesh, problems[0][0].scene.loaded)
-        bases = train_atlas_bases(atlas, problems, rank)
-    else:
-        bases = train_bases(*problems[0], rank, generator)
-    return save_bases(bases, bases_file, picture)
+    atlas = atlas_surfaces(atlas_mesh, problems[0][0].scene.loaded)
+    return train_atlas_bases(atlas, problems, rank)
 
 
 def save_bases(bases, bases_file, picture):
@@ -204,10 +186,17 @@ def save_bases(bases, bases_file, picture):
 
 
 def run_render(folder: Path, out: Path | None = None) -> Path:
-    from fenics_elasto.app.render import read_result_folder, render
-
-    saved = read_result_folder(folder)
+    """The ``render`` command: a result folder's picture again, from its saved surfaces."""
+    plotter = api.render(folder)
     picture = prepare_file(out or Path(folder) / "screenshot.png", ".png")
-    picture.write(lambda path: render(path, **saved))
+    if plotter is not None:
+        picture.write(lambda path: screenshot(plotter, path))
     log.info(f"wrote {picture.path}")
     return picture.path
+
+
+def screenshot(plotter, path: Path) -> Path:
+    """The plotter's picture into ``path``; the plotter closed."""
+    plotter.screenshot(str(path))
+    plotter.close()
+    return path

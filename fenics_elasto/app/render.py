@@ -14,9 +14,15 @@ colour, the target in red.
 
 from __future__ import annotations
 
+import os
+from contextlib import contextmanager
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:
+    import pyvista as pv
 
 GROUP_COLOURS = ["#e6550d", "#3182bd", "#31a354", "#756bb1", "#d6616b", "#8c6d31"]
 FIXED_COLOUR = "#c9b38f"  # clamped groups: bone, muted
@@ -29,16 +35,29 @@ VIEW_3D = ((1.0, -0.75, 0.45), (0.0, 0.0, 1.0))  # from the side and the front, 
 MAX_TARGET_POINTS = 6000  # a denser target is thinned for drawing (every point is still measured)
 
 
-def offscreen_plotter(**options):
-    """A pyvista plotter that renders off-screen (default: one 1400 x 1000 view)."""
-    import os
+@contextmanager
+def _headless_window(off_screen: bool):
+    """VTK's off-screen (EGL) window class for the plotters made inside, unless the
+    environment names one: straight to EGL, no failed X connection first. The
+    environment is as it was afterwards."""
+    set_here = off_screen and "VTK_DEFAULT_OPENGL_WINDOW" not in os.environ
+    if set_here:
+        os.environ["VTK_DEFAULT_OPENGL_WINDOW"] = "vtkEGLRenderWindow"
+    try:
+        yield
+    finally:
+        if set_here:
+            os.environ.pop("VTK_DEFAULT_OPENGL_WINDOW", None)
 
-    # Straight to the off-screen (EGL/OSMesa) window: no failed X connection first.
-    os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
+
+def offscreen_plotter(off_screen: bool = True, **options) -> Any:
+    """A pyvista plotter (default: one 1400 x 1000 view), off-screen unless told; no
+    global setting of pyvista's is changed. (Typed Any: pyvista's own annotations of
+    its drawing calls are narrower than what they take.)"""
     import pyvista as pv
 
-    pv.OFF_SCREEN = True
-    return pv.Plotter(off_screen=True, **{"window_size": (1400, 1000), **options})
+    with _headless_window(off_screen):
+        return pv.Plotter(off_screen=off_screen, **{"window_size": (1400, 1000), **options})
 
 
 def render(
@@ -53,20 +72,29 @@ def render(
     units: str = "",
 ) -> Path:
     """Write a PNG of a solution: 2D or 3D (see the module docstring)."""
+    plotter = picture(groups, reference, context, target, title, dim, fixed, units)
+    plotter.screenshot(str(path))
+    plotter.close()
+    return Path(path)
+
+
+def picture(groups: dict, reference: dict | None = None, context=None, target=None, title: str = "", dim: int = 3,
+            fixed=(), units: str = "", off_screen: bool = True) -> pv.Plotter:
+    """The plotter of a solution's picture, drawn but not shown (``render``'s arguments)."""
     if dim == 2:
-        return _render_2d(Path(path), groups, reference, context, target, title)
-    return _render_3d(Path(path), groups, context, target, title, fixed, units)
+        return _picture_2d(groups, reference, context, target, title, off_screen)
+    return _picture_3d(groups, context, target, title, fixed, units, off_screen)
 
 
 # --------------------------------------------------------------------------- 3D
 
 
-def _render_3d(path, groups, context, target, title, fixed, units) -> Path:
+def _picture_3d(groups, context, target, title, fixed, units, off_screen: bool) -> pv.Plotter:
     organs = {n: m for n, m in groups.items() if n not in fixed and m is not None and m.n_points}
     muted = [groups[n] for n in fixed if n in groups and groups[n] is not None and groups[n].n_points]
     panels = _panels(organs, target, units)
     width = 1400 if len(panels) == 1 else 1000 * len(panels)
-    plotter = offscreen_plotter(shape=(2, len(panels)), row_weights=[1, 9], groups=[(0, np.s_[:])],
+    plotter = offscreen_plotter(off_screen, shape=(2, len(panels)), row_weights=[1, 9], groups=[(0, np.s_[:])],
                                 window_size=(width, 1000), border=False)
     plotter.subplot(0, 0)
     plotter.add_text(title, font_size=13, position="upper_edge")
@@ -84,9 +112,7 @@ def _render_3d(path, groups, context, target, title, fixed, units) -> Path:
         if heading:
             plotter.add_text(heading, font_size=12, position="upper_left")
         _frame(plotter, list(organs.values()) or muted or [context])
-    plotter.screenshot(str(path))
-    plotter.close()
-    return path
+    return plotter
 
 
 def _panels(organs: dict, target, units: str) -> list[tuple]:
@@ -232,10 +258,10 @@ def _shared_range(meshes, name: str, quantile: float = 1.0) -> tuple[float, floa
 # --------------------------------------------------------------------------- 2D
 
 
-def _render_2d(path, groups, reference, context, target, title) -> Path:
+def _picture_2d(groups, reference, context, target, title, off_screen: bool) -> pv.Plotter:
     """The body's cells coloured by |u| with mesh lines; the target as a wide red band
     under each group's curve, so both show where they agree."""
-    plotter = offscreen_plotter()
+    plotter = offscreen_plotter(off_screen)
     bar = {"title": "displacement", "vertical": True, "position_x": 0.88, "position_y": 0.2, "fmt": "%.3g"}
     clim = _shared_range([context] if context is not None else list(groups.values()), "|u|")
     if context is not None:
@@ -257,9 +283,7 @@ def _render_2d(path, groups, reference, context, target, title) -> Path:
     plotter.view_xy()
     plotter.reset_camera()
     plotter.camera.zoom(0.9)
-    plotter.screenshot(str(path))
-    plotter.close()
-    return path
+    return plotter
 
 
 # --------------------------------------------------------------------------- titles

@@ -81,10 +81,11 @@ TARGET = Table({
     "surfaces": Key(Named(String("a surface file"), "GROUP = surface file", minimum=1)),
     "landmarks": Key(String("a landmarks file")),
     "landmark_weight": Key(Number(gt=0)),
+    "landmark_noise": Key(Number(gt=0)),
     "noise": Key(Number(gt=0)),
     "smooth": Key(Choice("auto", "off"), "auto"),
 }, exclusive=[("surface", "surfaces")], one_of=("surface", "surfaces", "landmarks"),
-   expected="a table {surface or surfaces, landmarks, landmark_weight, noise, smooth}")
+   expected="a table {surface or surfaces, landmarks, landmark_weight, landmark_noise, noise, smooth}")
 
 OPTIMIZER = Table({
     "inner": Key(Choice("auto", "gauss-newton", "lbfgs", "lbfgs-forces"), "auto"),
@@ -109,6 +110,9 @@ PROBLEM = Table({
     "boundary": Key(BOUNDARY, {}),
     "target": Key(TARGET),
     "optimizer": Key(OPTIMIZER, {}),
+    # the source mesh's own error, from a solve one degree higher at the answer: corrected and counted
+    # ("auto": in 3D), or not
+    "uncertainty": Key(Table({"mesh": Key(Choice("auto", "on", "off"), "auto")}), {}),
     "reduction": Key(Table({"bases": Key(String("a bases file"), REQUIRED), "rank": Key(Integer(ge=1))})),
     "solver": Key(Table({
         "method": Key(Choice("auto", "direct", "iterative"), "auto"),

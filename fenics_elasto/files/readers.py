@@ -78,25 +78,53 @@ def read_polydata(path: Path, what: str = "surface"):
 
 def read_surface(path: Path, gdim: int) -> Surface:
     """A target surface from any file meshio/pyvista reads: triangles in 3D, lines in 2D."""
+    return surface_of(read_polydata(path, "target surface"), gdim, str(path))
+
+
+def surface_of(mesh, gdim: int, name: str) -> Surface:
+    """A target surface from a pyvista mesh in memory (``name`` in its error lines):
+    triangles in 3D, lines in 2D; a volume mesh gives its boundary."""
     import pyvista as pv
 
-    mesh = read_polydata(path, "target surface")
+    require(isinstance(mesh, pv.DataSet), f"{name}: expected a pyvista mesh, got {type(mesh).__name__}")
     if not isinstance(mesh, pv.PolyData):
         mesh = mesh.extract_surface(algorithm=None) if gdim == 3 else mesh.extract_feature_edges()
     points = np.asarray(mesh.points, float)
-    require(len(points) > 0, f"{path}: the target has no points")
-    require(np.isfinite(points).all(), f"{path}: the target has NaN or infinite coordinates")
+    require(len(points) > 0, f"{name}: the target has no points")
+    require(np.isfinite(points).all(), f"{name}: the target has NaN or infinite coordinates")
     flat = np.allclose(points[:, 2], 0.0)
     if gdim == 2:
-        require(flat, f"{path}: a 2D scene needs a target in the z = 0 plane (got a 3D surface)")
-        require(mesh.n_lines > 0, f"{path}: a 2D scene needs a polyline target (line cells)")
+        require(flat, f"{name}: a 2D scene needs a target in the z = 0 plane (got a 3D surface)")
+        require(mesh.n_lines > 0, f"{name}: a 2D scene needs a polyline target (line cells)")
         lines = _segments(mesh.lines)
         return Surface(points[:, :2], lines)
     tri = mesh.triangulate()
     faces = tri.faces.reshape(-1, 4)[:, 1:] if tri.faces.size else np.empty((0, 3), np.int64)
     got = "a 2D polyline" if flat else "no triangles"
-    require(len(faces) > 0, f"{path}: a 3D scene needs a triangle surface target (got {got})")
+    require(len(faces) > 0, f"{name}: a 3D scene needs a triangle surface target (got {got})")
     return Surface(np.asarray(tri.points, float), faces)
+
+
+def surface_from_arrays(points, cells, gdim: int, name: str) -> Surface:
+    """A target surface from arrays: ``points`` (n, gdim) -- or (n, 3) with z = 0 in 2D --
+    and ``cells`` (m, 2) segments in 2D or (m, 3) triangles in 3D, indices into points."""
+    try:
+        points, cells = np.asarray(points, float), np.asarray(cells)
+    except (TypeError, ValueError) as err:
+        raise UserError(f"{name}: points and cells must be numeric arrays ({err})") from None
+    require(points.ndim == 2 and points.shape[1] in (2, 3) and len(points) > 0,
+            f"{name}: points must be an (n, {gdim}) array, got shape {points.shape}")
+    if gdim == 2 and points.shape[1] == 3:
+        require(np.allclose(points[:, 2], 0.0), f"{name}: a 2D scene needs a target in the z = 0 plane")
+        points = points[:, :2]
+    require(points.shape[1] == gdim, f"{name}: points must be an (n, {gdim}) array for a {gdim}D scene, "
+                                     f"got shape {points.shape}")
+    require(np.isfinite(points).all(), f"{name}: the target has NaN or infinite coordinates")
+    require(cells.ndim == 2 and cells.shape[1] == gdim and len(cells) > 0 and np.issubdtype(cells.dtype, np.integer),
+            f"{name}: cells must be an (m, {gdim}) integer array ({'segments' if gdim == 2 else 'triangles'}), "
+            f"got shape {cells.shape}")
+    require(cells.min() >= 0 and cells.max() < len(points), f"{name}: cells index points outside 0..{len(points) - 1}")
+    return Surface(points, cells)
 
 
 def _segments(lines: np.ndarray) -> np.ndarray:
@@ -129,6 +157,27 @@ def read_landmarks(path: Path, gdim: int) -> tuple[np.ndarray, np.ndarray]:
             f"{path}: expected {2 * gdim} columns (source point, target point) for a {gdim}D scene, got {data.shape[1]}")
     require(np.isfinite(data).all(), f"{path}: landmarks contain NaN or infinite values")
     return data[:, :gdim], data[:, gdim:]
+
+
+def landmark_arrays(source, observed, name: str = "landmarks") -> tuple[np.ndarray, np.ndarray]:
+    """Landmarks in memory: (source points, observed points), two (n, d) arrays of the
+    same shape with d 2 or 3; checked in one line."""
+    try:
+        source, observed = np.asarray(source, float), np.asarray(observed, float)
+    except (TypeError, ValueError) as err:
+        raise UserError(f"{name}: source and observed points must be numeric arrays ({err})") from None
+    require(source.ndim == 2 and source.shape[1] in (2, 3) and len(source) > 0,
+            f"{name}: source points must be an (n, 2) or (n, 3) array, got shape {source.shape}")
+    require(observed.shape == source.shape,
+            f"{name}: observed points {observed.shape} must have the shape of the source points {source.shape}")
+    require(np.isfinite(source).all() and np.isfinite(observed).all(), f"{name}: landmarks contain NaN or infinite values")
+    return source, observed
+
+
+def check_landmark_dim(landmarks: tuple[np.ndarray, np.ndarray], gdim: int, name: str = "landmarks") -> None:
+    """Landmarks in memory have the scene's dimension."""
+    width = landmarks[0].shape[1]
+    require(width == gdim, f"{name}: points of dimension {width}, but the scene is {gdim}D")
 
 
 def _is_numeric_line(line: str) -> bool:

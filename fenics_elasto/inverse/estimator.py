@@ -41,7 +41,8 @@ from fenics_elasto.inverse.report import record as result_record
 from fenics_elasto.inverse.surrogate import MaterialSurrogate
 from fenics_elasto.inverse.uncertainty.answer import AnswerUncertainty
 from fenics_elasto.inverse.uncertainty.identifiability import check_identifiable
-from fenics_elasto.inverse.uncertainty.posterior import target_offset
+from fenics_elasto.inverse.uncertainty.parts import add_model_error, largest_part
+from fenics_elasto.inverse.uncertainty.posterior import posterior_record, target_offset
 from fenics_elasto.util.errors import require
 from fenics_elasto.util.interrupts import Interrupted
 from fenics_elasto.util.logs import log
@@ -236,15 +237,17 @@ def _run(estimator: Estimator, warnings: list[str], extent_warnings: list[str], 
         post.offset = target_offset(problem.misfit, lin, best.evaluation)
     if post is not None and not interrupted:
         estimator.uncertainty.profile_likelihood_interval(post)
-    uncertainty_seconds = time.perf_counter() - clock
     fit = fit_of_bases(estimator, theta, best)
+    if post is not None and not interrupted:
+        add_model_error(problem, post, theta, best.evaluation, estimator.profile.linearisation(best), fit)
+    uncertainty_seconds = time.perf_counter() - clock
     warnings = (warnings + estimator.uncertainty.warnings + run_warnings(estimator, theta, interrupted, fit, post)
                 + extent_warnings + target_warnings(problem, best))
     for text in warnings:
         log.warning(text)
     record = result_record(estimator, theta, best, phi_undeformed, warnings, interrupted, start)
     record["bases_fit"] = fit if fit is None else {**fit, "held_out_energy": held_out}
-    record["uncertainty"] = post.record() if post is not None else {
+    record["uncertainty"] = posterior_record(post) if post is not None else {
         "note": f"not computed: interrupted, and the {estimator.inner_name} inner solver keeps no response of the "
                 "controls (profiling them out would take another inner fit's solves)"}
     if post is not None:  # what the answer's posterior, offset and profile interval cost
@@ -253,7 +256,7 @@ def _run(estimator: Estimator, warnings: list[str], extent_warnings: list[str], 
     if smoothing is not None:
         record["uncertainty"]["target_smoothed"] = smoothing
     if post is not None:
-        for line in describe_uncertainty(post, theta) + describe_offset(post):
+        for line in describe_uncertainty(post, theta) + largest_part(post) + describe_offset(post):
             log.info(line)
     record["wall_time_s"] = round(time.perf_counter() - start, 3)
     return EstimateResult(theta, list(problem.params.labels), best.evaluation.u, forces, best.evaluation, record)

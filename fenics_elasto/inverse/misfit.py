@@ -9,7 +9,8 @@ directions ``Surface.curvature_directions`` gives (the normal of a face, the two
 directions across an edge, all at a vertex; all for a landmark) -- exact for a
 piecewise-linear target, which makes Gauss-Newton a Newton method here.
 
-Weights: surface rows 1; landmark rows ``landmark_weight`` (see ``landmark_weight``).
+Weights: surface rows 1; landmark rows ``landmark_weight`` (see ``landmark_weight``: from
+``[target] landmark_noise`` beside the surfaces' noise, by maximum likelihood).
 """
 
 from __future__ import annotations
@@ -174,6 +175,32 @@ class Misfit:
 # --------------------------------------------------------------------------- from [target]
 
 
+@dataclass
+class TargetData:
+    """A target in memory: ``surface`` (one for every matched group) or ``surfaces`` (one
+    per matched group), and/or ``landmarks`` (source points, observed points); ``source``
+    names it in error lines."""
+
+    surface: Surface | None = None
+    surfaces: dict[str, Surface] | None = None
+    landmarks: tuple[np.ndarray, np.ndarray] | None = None
+    source: str = "target"
+
+
+def read_target(scene) -> TargetData:
+    """The scene's [target] files read (paths relative to the problem file), the rough
+    3D surfaces smoothed (``smooth``)."""
+    spec = scene.config["target"]
+    require(spec is not None, f"{scene.path}: [target]: missing; give surface, surfaces and/or landmarks")
+    base = scene.path.parent
+    read = lambda name: target_surface(base / name, scene.gdim, spec["smooth"])  # noqa: E731
+    if spec["surfaces"] is not None:  # the names first: a file of a group not matched is not read
+        check_surface_groups(scene.matched, spec["surfaces"], f"{scene.path}: [target]")
+    return TargetData(surface=read(spec["surface"]) if spec["surface"] is not None else None,
+                      surfaces={g: read(f) for g, f in spec["surfaces"].items()} if spec["surfaces"] is not None else None,
+                      landmarks=read_target_landmarks(scene), source=f"{scene.path}: [target]")
+
+
 def read_target_landmarks(scene) -> tuple[np.ndarray, np.ndarray] | None:
     """(source points, observed points) of [target] landmarks, or None."""
     spec = scene.config["target"] or {}
@@ -182,14 +209,35 @@ def read_target_landmarks(scene) -> tuple[np.ndarray, np.ndarray] | None:
     return read_landmarks(scene.path.parent / spec["landmarks"], scene.gdim)
 
 
-def landmark_weight(spec: dict, surface_rows: int, landmark_rows: int) -> float:
-    """The weight of a landmark row: ``[target] landmark_weight`` if given, else 1 -- each
-    observed coordinate counts alike, the maximum-likelihood weight when a landmark's
-    position is as certain as a surface point's."""
-    return float(spec["landmark_weight"] or 1.0)
+def landmark_weight(spec: dict, surfaces: list[Surface]) -> float:
+    """The weight of a landmark row beside a surface row's 1: ``[target] landmark_weight``
+    if given; else with ``landmark_noise`` (the markers' localisation std) the maximum-
+    likelihood ratio (sigma_surface / landmark_noise)^2, sigma_surface being ``[target]
+    noise`` if given, else the noise the target surfaces show (their roughness), but at
+    least SURFACE_FLOOR of their mean edge -- a surface is not known better than a tenth of
+    its own sampling however smooth it looks; else 1: a landmark as certain as a surface
+    point."""
+    if spec.get("landmark_weight") is not None:
+        return float(spec["landmark_weight"])
+    if spec.get("landmark_noise") is None:
+        return 1.0
+    sigma = spec.get("noise")
+    if sigma is None and surfaces:
+        sigma = max(max(noise(s) for s in surfaces), SURFACE_FLOOR * float(np.mean([s.mean_edge for s in surfaces])))
+    if sigma is None:  # landmarks alone: their own noise sets the scale
+        return 1.0
+    return float((sigma / spec["landmark_noise"]) ** 2)
+
+
+SURFACE_FLOOR = 0.1  # landmark_weight: the least noise a target surface is credited with, in its mean edges
 
 
 def target_surface(path: Path, gdim: int, smooth: str) -> Surface:
+    """A target surface file, smoothed first when it is rough (``smooth_if_rough``)."""
+    return smooth_if_rough(read_surface(path, gdim), path.name, smooth)
+
+
+def smooth_if_rough(surface: Surface, name: str, smooth: str) -> Surface:
     """A target surface, smoothed first when it is rough (``smooth = "auto"``): the
     closest point to a noisy, finely sampled surface is its nearest spike, so the misfit
     is jagged in the materials and the optimiser lands in one of its many local minima
@@ -198,41 +246,42 @@ def target_surface(path: Path, gdim: int, smooth: str) -> Surface:
     3D only: organs are smooth, while 2D outlines have corners that a noisy polyline
     cannot tell from its noise -- smoothing rounded the letter A's and moved its nu by
     -3 % (0.5 % noise, 30 draws: -3.7 % against -0.6 % unsmoothed)."""
-    surface = read_surface(path, gdim)
-    if smooth == "auto" and gdim == 3 and is_rough(surface):
+    if smooth == "auto" and surface.dim == 3 and is_rough(surface):
         smooth_surface = smoothed(surface)
-        log.info(f"note: {path.name}: rough (noise ~{roughness(surface):.3g}, mean edge {surface.mean_edge:.3g}): "
+        log.info(f"note: {name}: rough (noise ~{roughness(surface):.3g}, mean edge {surface.mean_edge:.3g}): "
                  f"smoothed before matching (noise left ~{noise(smooth_surface):.3g}); [target] smooth = \"off\" keeps it")
         return smooth_surface
     return surface
 
 
-def build_misfit(scene, node_groups: np.ndarray, landmarks: tuple | None) -> Misfit:
-    """The scene's [target] as a Misfit over its observation rows.
+def check_surface_groups(matched: list[str], surfaces, where: str) -> None:
+    """One target surface per matched group, and none for another group."""
+    missing = [g for g in matched if g not in surfaces]
+    require(not missing, f"{where}.surfaces: no surface for matched group(s) {missing}")
+    unknown = [g for g in surfaces if g not in matched]
+    require(not unknown, f"{where}.surfaces: {unknown} not in boundary.matched")
+
+
+def build_misfit(scene, node_groups: np.ndarray, target: TargetData) -> Misfit:
+    """A target as a Misfit over the scene's observation rows (weights from [target]).
 
     ``node_groups``: index into ``scene.matched`` of each matched node (canonical order);
-    ``landmarks``: (source, observed) points, rows after the nodes, or None.
+    the landmarks' rows follow the nodes'.
     """
-    spec = scene.config["target"]
-    where = f"{scene.path}: [target]"
-    require(spec is not None, f"{where}: missing; give surface, surfaces and/or landmarks")
-    base = scene.path.parent
+    spec = scene.config["target"] or {"landmark_weight": None}
+    where = target.source
+    require(target.surface is not None or target.surfaces is not None or target.landmarks is not None,
+            f"{where}: missing; give surface, surfaces and/or landmarks")
     blocks: list[tuple[int, Term, float]] = []
-    if spec["surface"] is not None:
-        blocks.append((len(node_groups), SurfaceTerm([target_surface(base / spec["surface"], scene.gdim, spec["smooth"])],
-                                                     np.zeros(len(node_groups), int)), 1.0))
-    elif spec["surfaces"] is not None:
-        surfaces = spec["surfaces"]
-        missing = [g for g in scene.matched if g not in surfaces]
-        require(not missing, f"{where}.surfaces: no surface for matched group(s) {missing}")
-        unknown = [g for g in surfaces if g not in scene.matched]
-        require(not unknown, f"{where}.surfaces: {unknown} not in boundary.matched")
-        terms = SurfaceTerm([target_surface(base / surfaces[g], scene.gdim, spec["smooth"]) for g in scene.matched],
-                            node_groups)
-        blocks.append((len(node_groups), terms, 1.0))
+    if target.surface is not None:
+        blocks.append((len(node_groups), SurfaceTerm([target.surface], np.zeros(len(node_groups), int)), 1.0))
+    elif target.surfaces is not None:
+        check_surface_groups(scene.matched, target.surfaces, where)
+        blocks.append((len(node_groups), SurfaceTerm([target.surfaces[g] for g in scene.matched], node_groups), 1.0))
     else:  # landmarks alone: the matched nodes observe nothing
         blocks.append((len(node_groups), Unobserved(), 0.0))
-    if landmarks is not None:
-        surface_rows = blocks[0][0] if blocks[0][2] > 0 else 0
-        blocks.append((len(landmarks[1]), PointTerm(landmarks[1]), landmark_weight(spec, surface_rows, len(landmarks[1]))))
+    if target.landmarks is not None:
+        surfaces = blocks[0][1].surfaces if isinstance(blocks[0][1], SurfaceTerm) else []
+        observed = target.landmarks[1]
+        blocks.append((len(observed), PointTerm(observed), landmark_weight(spec, surfaces)))
     return Misfit(blocks)

@@ -20,7 +20,7 @@ import numpy as np
 from fenics_elasto.model.elasticity import ElasticModel
 from fenics_elasto.util.errors import require
 from fenics_elasto.model.forward import BoundaryForward
-from fenics_elasto.inverse.misfit import Misfit, build_misfit, read_target_landmarks
+from fenics_elasto.inverse.misfit import Misfit, TargetData, build_misfit, read_target
 from fenics_elasto.model.observation import Observation
 from fenics_elasto.model.scene import Scene
 from fenics_elasto.model.responses import response_block
@@ -39,17 +39,20 @@ class Evaluation:
 class InverseProblem:
     """A scene's forward model, its observation and the misfit to its target."""
 
-    def __init__(self, scene: Scene, model: ElasticModel | None = None, target: Misfit | Literal[False] | None = None):
-        """``target``: a Misfit, None to read the scene's [target], False for none (training)."""
+    def __init__(self, scene: Scene, model: ElasticModel | None = None,
+                 target: TargetData | Misfit | Literal[False] | None = None):
+        """``target``: a target in memory (TargetData), a Misfit (no landmarks), None to
+        read the scene's [target] files, False for none (training)."""
         require(scene.matched, f"{scene.path}: boundary.matched is empty: nothing to compare with the target")
         self.scene = scene
         self.forward = BoundaryForward(scene, model)
         self.model = self.forward.model
         self.params = self.forward.params
         self.gdim = scene.gdim
-        landmarks = read_target_landmarks(scene) if target is None else None
+        data = read_target(scene) if target is None else target
+        landmarks = data.landmarks if isinstance(data, TargetData) else None
         self.observation = Observation(self.model, scene, None if landmarks is None else landmarks[0])
-        self._misfit = build_misfit(scene, self.node_groups(), landmarks) if target is None else target or None
+        self._misfit = build_misfit(scene, self.node_groups(), data) if isinstance(data, TargetData) else data or None
 
     @property
     def misfit(self) -> Misfit:

@@ -7,9 +7,10 @@ Everything a user can get wrong is checked here, once, with a one-line message.
 from __future__ import annotations
 
 import copy
-
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from mpi4py import MPI
@@ -40,6 +41,8 @@ class Parameter:
 
 @dataclass
 class Material:
+    """A region's material: its name, its cell tag, E and nu."""
+
     name: str
     tag: int
     E: Parameter
@@ -48,6 +51,12 @@ class Material:
 
 @dataclass
 class Scene:
+    """A mesh with named regions (each with its material) and named facet groups, and the
+    problem's settings: which groups are clamped, loaded and matched, the target, the
+    optimiser, the solver. Made by ``load_scene`` (a problem.toml and its .msh) or
+    ``Scene.from_mesh`` (a DOLFINx mesh and its MeshTags); ``path`` names it in
+    messages, and relative file names in its settings are relative to its folder."""
+
     path: Path
     mesh: dolfinx.mesh.Mesh
     cell_tags: dolfinx.mesh.MeshTags
@@ -92,6 +101,25 @@ class Scene:
 
     def parameters(self) -> Parameters:
         return Parameters(self)
+
+    @classmethod
+    def from_mesh(cls, mesh: dolfinx.mesh.Mesh, cell_tags: dolfinx.mesh.MeshTags, facet_tags: dolfinx.mesh.MeshTags,
+                  regions: Mapping[str, int], groups: Mapping[str, int | Sequence[int]], materials: Mapping[str, Any],
+                  boundary: Mapping[str, Any] | None = None, degree: int = 2, plane: str = "strain",
+                  settings: Mapping[str, Any] | None = None) -> Scene:
+        """A scene over your own DOLFINx mesh and its tags.
+
+        ``regions`` maps each region's name to its value in ``cell_tags`` (every cell in
+        one region), ``groups`` each facet group's name to its value(s) in ``facet_tags``
+        (groups may overlap: ``{"outline": [1, 2, 3]}``). ``materials`` and ``boundary``
+        are the problem file's [materials] and [boundary] tables as dicts, ``settings``
+        its other tables (``target``, ``optimizer``, ``reduction``, ``solver``,
+        ``units``); paths in them are relative to the working directory. Checked as a
+        problem file is: a bad name or value raises UserError with one line.
+        """
+        from fenics_elasto.model.own_mesh import scene_from_mesh
+
+        return scene_from_mesh(mesh, cell_tags, facet_tags, regions, groups, materials, boundary, degree, plane, settings)
 
 
 class Parameters:
@@ -241,7 +269,7 @@ def load_scene(problem, overrides=(), comm=MPI.COMM_WORLD, command: str | None =
     curve = config["curve"] == "auto" and config["degree"] == 2  # P1 fields on curved cells gain nothing
     mesh, cell_tags, cell_groups, facet_groups, mesh_warnings = read_msh(path.parent / config["mesh"], comm, curve)
     check_gdim(config, mesh.geometry.dim, str(path), overridden)
-    return _configure(path, raw, config, mesh, cell_tags, cell_groups, facet_groups, warnings=mesh_warnings)
+    return configure(path, raw, config, mesh, cell_tags, cell_groups, facet_groups, warnings=mesh_warnings)
 
 
 def reconfigure(scene: Scene, overrides, command: str | None = None) -> Scene:
@@ -252,7 +280,7 @@ def reconfigure(scene: Scene, overrides, command: str | None = None) -> Scene:
     config, _ = validate_problem(raw, str(scene.path), command, scene.gdim, overridden)
     require(config["mesh"] == scene.config["mesh"], f"{scene.path}: reconfigure keeps the mesh; load the other one")
     cell_groups = {m.name: m.tag for m in scene.materials}
-    return _configure(scene.path, raw, config, scene.mesh, scene.cell_tags, cell_groups, scene.facet_groups,
+    return configure(scene.path, raw, config, scene.mesh, scene.cell_tags, cell_groups, scene.facet_groups,
                       warnings=scene.warnings)
 
 
@@ -289,7 +317,7 @@ def _displacement(spec: dict, gdim: int) -> dict:
             "ripple": spec["ripple"]}
 
 
-def _configure(path: Path, raw: dict, config: dict, mesh, cell_tags, cell_groups: dict, facet_groups: dict,
+def configure(path: Path, raw: dict, config: dict, mesh, cell_tags, cell_groups: dict, facet_groups: dict,
                warnings: list[str] | None = None) -> Scene:
     """Check the normalised settings against the mesh's groups and build the Scene."""
     _check_groups(path, config, cell_groups, facet_groups, mesh)

@@ -12,6 +12,7 @@ The examples are not centred: the span of W must contain the examples themselves
 
 from __future__ import annotations
 
+import os
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,6 +31,11 @@ from fenics_elasto.files.readers import read_surface
 
 @dataclass
 class Bases:
+    """Reduced force bases from ``train``: ``W`` (force dofs x rank, orthonormal
+    columns) on the loaded nodes ``loaded_coords``, the share of the examples' energy
+    each column explains (``variance``), and the share of held-out examples' energy they
+    keep (``held_out``). ``save(path)`` writes an .npz that ``Bases.load`` reads back."""
+
     W: np.ndarray  # (force_dofs, r) orthonormal columns
     variance: np.ndarray  # explained variance ratio of each column
     loaded_coords: np.ndarray  # (n_loaded, gdim) the loaded nodes they belong to (atlas nodes if atlas)
@@ -37,11 +43,23 @@ class Bases:
     atlas: dict | None = None  # group -> (points, triangles): W is in atlas numbering
     held_out: float | None = None  # share of left-out examples' energy the bases keep (held_out_energy)
 
+    @property
+    def rank(self) -> int:
+        """The number of bases (columns of W)."""
+        return int(self.W.shape[1])
+
+    @classmethod
+    def load(cls, path: str | os.PathLike[str]) -> Bases:
+        """Bases from a file ``save`` or ``fenics-elasto train`` wrote (checked: one line
+        if it is not one)."""
+        return cls.read(Path(path))
+
     def truncated(self, rank: int) -> Bases:
         require(1 <= rank <= self.W.shape[1], f"rank {rank} outside 1..{self.W.shape[1]} (the trained bases)")
         return Bases(self.W[:, :rank], self.variance[:rank], self.loaded_coords, self.examples, self.atlas)
 
-    def save(self, path: Path) -> None:
+    def save(self, path: str | os.PathLike[str]) -> None:
+        """Write the bases to ``path`` (.npz)."""
         surfaces = {}
         for g, (points, triangles) in (self.atlas or {}).items():
             surfaces[f"atlas_points_{g}"], surfaces[f"atlas_triangles_{g}"] = points, triangles

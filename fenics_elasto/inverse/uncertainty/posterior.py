@@ -67,16 +67,33 @@ class Posterior:
     patch_covariance: np.ndarray | None = None  # of s, from how the residual's patches pull (patch_covariance)
     offset: tuple | None = None  # (delta, ds): a target offset out by delta and how far s moves (target_offset)
     inner_spread: float | None = None  # how far apart the inner fit's minima at the answer are, where measured
+    model_parts_s: dict[str, np.ndarray] | None = None  # the model's own error: part -> std in s (parts.py)
+    mesh_shift_s: np.ndarray | None = None  # how far a degree higher would move the answer, where computed (parts.py)
 
     @property
     def method(self) -> str:
         return "profile likelihood" if self.profile_s is not None else "laplace"
 
     @property
-    def std_s(self) -> np.ndarray:
+    def noise_part_s(self) -> np.ndarray:
         """In s: the noise std (noise_std_s), widened to the patch std where the residual
         is structured (``widening``)."""
         return self.noise_std_s * self.widening
+
+    @property
+    def model_std_s(self) -> np.ndarray:
+        """In s: the std of the model's own error, its parts (mesh, bases) added in quadrature."""
+        parts = list((self.model_parts_s or {}).values())
+        return np.sqrt(sum(p**2 for p in parts)) if parts else np.zeros(len(self.labels))
+
+    @property
+    def std_s(self) -> np.ndarray:
+        """In s: the noise part and the model's own error together."""
+        return np.hypot(self.noise_part_s, self.model_std_s)
+
+    def parts_s(self) -> dict[str, np.ndarray]:
+        """Each source of error's std in s: the noise, then the model's parts."""
+        return {"noise": self.noise_part_s, **(self.model_parts_s or {})}
 
     def set_profile(self, ends, bounds) -> None:
         """The profile-likelihood interval of the single estimated constant (in s), and
@@ -118,7 +135,9 @@ class Posterior:
             low, high = self.profile_s.T
         else:
             low, high = self.s - level * self.laplace_std_s, self.s + level * self.laplace_std_s
-        low, high = self.s - self.widening * (self.s - low), self.s + self.widening * (high - self.s)
+        model = level * self.model_std_s
+        low = self.s - np.hypot(self.widening * (self.s - low), model)
+        high = self.s + np.hypot(self.widening * (high - self.s), model)
         return np.stack([np.where(self.is_E, np.exp(low), low), np.where(self.is_E, np.exp(high), high)], axis=1)
 
     def std(self) -> np.ndarray:
@@ -126,37 +145,14 @@ class Posterior:
         value = np.where(self.is_E, np.exp(self.s), self.s)
         return np.where(self.is_E, value * self.std_s, self.std_s)
 
+    def in_units(self, stds: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """Stds in s -> in each constant's own units (E: delta method)."""
+        value = np.where(self.is_E, np.exp(self.s), self.s)
+        return {key: np.where(self.is_E, value * sd, sd) for key, sd in stds.items()}
+
     def correlation(self) -> np.ndarray:
         d = np.where(self.laplace_std_s > 0, self.laplace_std_s, 1.0)
         return self.covariance / np.outer(d, d)
-
-    def record(self) -> dict:
-        """result.json's ``uncertainty``."""
-        out: dict[str, object] = {label: {"std": float(sd), "ci95": [float(lo), float(hi)]}
-               for label, sd, (lo, hi) in zip(self.labels, self.std(), self.interval())}
-        out["separable"] = {label: float(v) for label, v in zip(self.labels, self.separable)}
-        out["noise_std"] = self.noise_std
-        out["noise"] = {"given": "given", "the residual": "estimated from the residual",
-                        "the target's roughness": "the target's roughness"}[self.noise_source]
-        out["residual_noise_std"] = self.residual_std
-        out["interval"] = self.method
-        out["dof"] = self.dof
-        if self.patch_covariance is not None:
-            value = np.where(self.is_E, np.exp(self.s), self.s)
-            in_units = lambda sd: {label: float(v) for label, v in zip(self.labels, np.where(self.is_E, value * sd, sd))}  # noqa: E731
-            out["noise_only_std"] = in_units(self.noise_std_s)
-            out["patch_std"] = in_units(self.patch_std_s)
-            out["widened"] = {label: float(w) for label, w in zip(self.labels, self.widening)}
-        if self.offset is not None:
-            delta, ds = self.offset
-            shift = np.where(self.is_E, np.expm1(ds), ds)
-            out["target_offset"] = {"offset": delta, "shift": {label: float(v) if np.isfinite(v) else None
-                                                                for label, v in zip(self.labels, shift)}}
-        if self.inner_spread is not None:
-            out["inner_spread"] = self.inner_spread
-        if len(self.labels) > 1:
-            out["correlation"] = self.correlation().tolist()
-        return out
 
     def spans_bounds(self, bounds_s: list) -> np.ndarray:
         """Per constant: does its 95 % interval (in s) cover its bounds? A profile interval
@@ -188,6 +184,39 @@ class Posterior:
             elif spans:
                 out[label] = "its 95 % interval spans its bounds"
         return out
+
+
+def posterior_record(post: Posterior) -> dict:
+    """result.json's ``uncertainty``: per constant its std, interval and the parts of its
+    std; how the noise was found; what widened or could move the answer."""
+    labelled = lambda values: {label: float(v) for label, v in zip(post.labels, values)}  # noqa: E731
+    parts = post.in_units(post.parts_s())
+    out: dict[str, object] = {label: {"std": float(sd), "ci95": [float(lo), float(hi)],
+                                      "parts": {part: float(v[i]) for part, v in parts.items()}}
+                              for i, (label, sd, (lo, hi)) in enumerate(zip(post.labels, post.std(), post.interval()))}
+    out["separable"] = labelled(post.separable)
+    out["noise_std"] = post.noise_std
+    out["noise"] = {"given": "given", "the residual": "estimated from the residual",
+                    "the target's roughness": "the target's roughness"}[post.noise_source]
+    out["residual_noise_std"] = post.residual_std
+    out["interval"] = post.method
+    out["dof"] = post.dof
+    if post.patch_covariance is not None:
+        stds = post.in_units({"noise_only_std": post.noise_std_s, "patch_std": post.patch_std_s})
+        out.update({key: labelled(sd) for key, sd in stds.items()})
+        out["widened"] = labelled(post.widening)
+    if post.offset is not None:
+        delta, ds = post.offset
+        shift = np.where(post.is_E, np.expm1(ds), ds)
+        out["target_offset"] = {"offset": delta, "shift": {label: float(v) if np.isfinite(v) else None
+                                                            for label, v in zip(post.labels, shift)}}
+    if post.inner_spread is not None:
+        out["inner_spread"] = post.inner_spread
+    if post.mesh_shift_s is not None:
+        out["mesh_shift"] = labelled(np.where(post.is_E, np.expm1(post.mesh_shift_s), post.mesh_shift_s))
+    if len(post.labels) > 1:
+        out["correlation"] = post.correlation().tolist()
+    return out
 
 
 def posterior_at(profile, result, noise: float | None = None, floor: float = 0.0) -> Posterior | None:

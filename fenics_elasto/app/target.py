@@ -1,0 +1,126 @@
+"""``Target``: what an estimate compares the deformed scene with, from files or memory.
+
+A surface may be a file (anything pyvista/meshio reads), a pyvista mesh, or arrays
+``(points, cells)``; landmarks a CSV file or a pair of (n, d) arrays. Files are read,
+and surfaces turned into the misfit's form, only when the scene's dimension is known
+(``data``); shapes and types are checked at once.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from fenics_elasto.files.readers import (check_landmark_dim, landmark_arrays, read_landmarks, surface_from_arrays,
+                                         surface_of)
+from fenics_elasto.geometry.surface import Surface
+from fenics_elasto.inverse.misfit import TargetData, smooth_if_rough, target_surface
+from fenics_elasto.util.errors import require
+
+type SurfaceLike = str | os.PathLike[str] | Any | tuple[Any, Any]  # a file, a pyvista mesh, (points, cells)
+type LandmarksLike = str | os.PathLike[str] | tuple[Any, Any]  # a CSV file, (source, observed) arrays
+IN_MEMORY = "<in memory>"  # how [target] names what came from no file
+
+
+def _is_path(entry: object) -> bool:
+    return isinstance(entry, (str, os.PathLike))
+
+
+def _is_pair(entry: object) -> bool:
+    return isinstance(entry, (tuple, list)) and len(entry) == 2
+
+
+def _check_surface(entry: object, name: str) -> object:
+    """A surface entry of a known kind (a path made absolute: it names a file of the
+    caller's working directory)."""
+    import pyvista as pv
+
+    if _is_path(entry):
+        return Path(entry).resolve()  # type: ignore[arg-type]
+    require(isinstance(entry, pv.DataSet) or _is_pair(entry),
+            f"{name}: expected a file, a pyvista mesh or (points, cells) arrays, got {type(entry).__name__}")
+    return entry
+
+
+class Target:
+    """What the estimate compares the deformed scene with.
+
+    ``surfaces``: one surface for all matched groups together, or ``{group: surface}``
+    with one per matched group; a surface is a file path, a pyvista mesh, or
+    ``(points, cells)`` arrays (2D: segments; 3D: triangles). ``landmarks``: a CSV file
+    of ``source point, observed point`` rows or a ``(source_points, observed_points)``
+    pair of (n, d) arrays. ``noise``: the target's noise std if known (else estimated
+    from the residual), ``landmark_noise``: the landmarks' localisation std (their
+    weight beside the surfaces by maximum likelihood), ``landmark_weight``: a landmark
+    row's weight instead (default 1),
+    ``smooth``: "auto" smooths rough 3D surfaces before matching, "off" keeps them.
+    Paths are relative to the working directory.
+    """
+
+    def __init__(self, surfaces: SurfaceLike | Mapping[str, SurfaceLike] | None = None,
+                 landmarks: LandmarksLike | None = None, noise: float | None = None,
+                 landmark_weight: float | None = None, smooth: str = "auto",
+                 landmark_noise: float | None = None) -> None:
+        require(surfaces is not None or landmarks is not None, "Target: give surfaces and/or landmarks")
+        if isinstance(surfaces, Mapping):
+            require(len(surfaces) > 0, "Target.surfaces: an empty mapping; give {group: surface, ...}")
+            self.surfaces: object = {str(g): _check_surface(s, f"Target.surfaces[{g!r}]") for g, s in surfaces.items()}
+        else:
+            self.surfaces = None if surfaces is None else _check_surface(surfaces, "Target.surfaces")
+        self.landmarks: Path | tuple[np.ndarray, np.ndarray] | None = None
+        if landmarks is not None:
+            require(_is_path(landmarks) or _is_pair(landmarks),
+                    f"Target.landmarks: expected a CSV file or (source_points, observed_points), got {type(landmarks).__name__}")
+            self.landmarks = (Path(landmarks).resolve() if _is_path(landmarks)  # type: ignore[arg-type]
+                              else landmark_arrays(*landmarks, name="Target.landmarks"))  # type: ignore[misc]
+        weights = {"noise": noise, "landmark_weight": landmark_weight, "landmark_noise": landmark_noise}
+        for key, value in weights.items():
+            require(value is None or (isinstance(value, (int, float)) and np.isfinite(value) and value > 0),
+                    f"Target.{key}: expected a number > 0 or None, got {value!r}")
+        require(smooth in ("auto", "off"), f"Target.smooth: expected \"auto\" or \"off\", got {smooth!r}")
+        self.noise, self.landmark_weight, self.landmark_noise, self.smooth = noise, landmark_weight, landmark_noise, smooth
+
+    def spec(self) -> dict:
+        """The problem file's [target] table this target stands for (files by their
+        absolute paths, what is in memory as "<in memory>")."""
+        label = lambda entry: str(entry) if isinstance(entry, Path) else IN_MEMORY  # noqa: E731
+        out: dict[str, Any] = {"smooth": self.smooth}
+        if isinstance(self.surfaces, dict):
+            out["surfaces"] = {g: label(s) for g, s in self.surfaces.items()}
+        elif self.surfaces is not None:
+            out["surface"] = label(self.surfaces)
+        if self.landmarks is not None:
+            out["landmarks"] = label(self.landmarks)
+        weights = {"noise": self.noise, "landmark_weight": self.landmark_weight, "landmark_noise": self.landmark_noise}
+        out.update({k: v for k, v in weights.items() if v is not None})
+        return out
+
+    def data(self, gdim: int) -> TargetData:
+        """The target read and checked for a ``gdim``-dimensional scene."""
+        if isinstance(self.surfaces, dict):
+            surfaces = {g: self._surface(s, gdim, f"Target.surfaces[{g!r}]") for g, s in self.surfaces.items()}
+            data = TargetData(surfaces=surfaces, source="Target")
+        else:
+            data = TargetData(surface=None if self.surfaces is None else self._surface(self.surfaces, gdim, "Target.surfaces"),
+                              source="Target")
+        if isinstance(self.landmarks, Path):
+            data.landmarks = read_landmarks(self.landmarks, gdim)
+        elif self.landmarks is not None:
+            check_landmark_dim(self.landmarks, gdim, "Target.landmarks")
+            data.landmarks = self.landmarks
+        return data
+
+    def _surface(self, entry: object, gdim: int, name: str) -> Surface:
+        if isinstance(entry, Path):
+            return target_surface(entry, gdim, self.smooth)
+        if isinstance(entry, (tuple, list)):
+            points, cells = entry
+            return smooth_if_rough(surface_from_arrays(points, cells, gdim, name), name, self.smooth)
+        return smooth_if_rough(surface_of(entry, gdim, name), name, self.smooth)
+
+    def __repr__(self) -> str:
+        return f"Target({self.spec()})"
