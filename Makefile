@@ -24,7 +24,7 @@ demo-quick: $(STAMP)
 	$(PY) demos/prostate_elastography.py --quick --out out/demo-quick
 
 # The same story with the organ walls meshed 0.2 h instead of 0.35 h: E within ~1 %
-# instead of ~4 %, at ~3x the time (see README).
+# instead of ~4 %, at ~3x the time (see docs/validation.md).
 demo-accurate: $(STAMP)
 	$(PY) demos/prostate_elastography.py --organ-size 0.2 --out out/demo-accurate
 

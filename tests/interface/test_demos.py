@@ -37,7 +37,7 @@ def test_prostate_demo_quick(tmp_path):
     for picture in ("fig8_rank.png", "fig7_bases.png"):
         assert_picture(tmp_path / picture)
     row = re.search(r"^\| 50 \| ([\d.]+) \| ([\d.]+) \|", index, re.M)
-    assert row and float(row.group(2)) < 15.0, index  # reduced rank 6 on a coarse phantom; see README
+    assert row and float(row.group(2)) < 15.0, index  # reduced rank 6 on a coarse phantom; see docs/validation.md
 
 
 @pytest.mark.slow
@@ -48,7 +48,7 @@ def test_real_prostate_chain(tmp_path):
     wall motion, the result carries its interval, the pictures are drawn, and the
     prostate comes out stiffer than the tissue and within a factor 2 of the truth. It
     is not an accuracy test: on these coarse meshes E is off by +52 % (rank 40) or
-    +13 % (rank 80), with an interval that states noise only; the README's table of the
+    +13 % (rank 80), with an interval that states noise only; docs/validation.md's table of the
     quick and full runs (+5 % and better) is the accuracy claim."""
     import json
 
