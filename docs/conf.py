@@ -1,5 +1,6 @@
 """Sphinx configuration of the docs site (`make docs`; why these tools: tooling.md)."""
 
+import dataclasses
 import re
 import sys
 from importlib import metadata
@@ -16,7 +17,9 @@ author = "the fenics_elasto authors"
 copyright = "2026, " + author
 release = version = metadata.version("fenics_elasto")
 
-extensions = ["myst_parser", "sphinx.ext.autodoc", "sphinx.ext.napoleon", "sphinx.ext.mathjax"]
+# No napoleon: the docstrings are prose without Google/NumPy sections, and it read a property's
+# "Stopped by Ctrl-C: ..." as a type.
+extensions = ["myst_parser", "sphinx.ext.autodoc", "sphinx.ext.mathjax"]
 myst_enable_extensions = ["dollarmath", "amsmath"]
 myst_heading_anchors = 3
 highlight_language = "none"  # a block without a language (commands, output) stays plain text
@@ -30,8 +33,6 @@ autodoc_member_order = "bysource"
 autodoc_typehints = "signature"
 autodoc_typehints_format = "short"
 autodoc_preserve_defaults = True
-napoleon_google_docstring = True
-napoleon_numpy_docstring = True
 
 html_theme = "furo"
 html_title = f"fenics_elasto {release}"
@@ -66,5 +67,14 @@ def _plain_bars(app, what, name, obj, options, lines: list[str]) -> None:
     lines[:] = [line.replace("|", r"\|") for line in lines]
 
 
+def _short_dataclass(app, what, name, obj, options, signature, return_annotation):
+    """A dataclass with many fields is made by a function (load_scene, Scene.from_mesh), not by
+    its field list: leave that list out of the heading."""
+    if what == "class" and dataclasses.is_dataclass(obj) and len(dataclasses.fields(obj)) > 6:
+        return "", None
+    return None
+
+
 def setup(app):
     app.connect("autodoc-process-docstring", _plain_bars)
+    app.connect("autodoc-process-signature", _short_dataclass)
