@@ -48,6 +48,9 @@ LITERATE_DEMOS = ["letter_a_poisson.py"]
 def write_demo_pages() -> None:
     out = DOCS / "demos"
     out.mkdir(exist_ok=True)
+    for page in out.glob("*.md"):  # a demo taken off the list leaves no page behind
+        if page.with_suffix(".py").name not in LITERATE_DEMOS:
+            page.unlink()
     for name in LITERATE_DEMOS:
         notebook = jupytext.read(ROOT / "demos" / name, fmt="py:percent")
         notebook.metadata = {}
