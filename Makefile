@@ -8,7 +8,7 @@ STAMP := $(VENV)/.installed
 PYTHON ?= $(shell for p in python3.13 python3.12 python3 $$(ls -d $$HOME/.pyenv/versions/3.1[2-9]*/bin/python3 /usr/bin/python3.1[2-9] 2>/dev/null); do \
   $$p -c 'import sys; sys.exit(sys.version_info < (3, 12))' >/dev/null 2>&1 && echo $$p && break; done)
 
-.PHONY: bench-adjoint demo demo-quick demo-accurate demo-prostate demo-prostate-quick test test-fast test-demo bench lint clean
+.PHONY: docs bench-adjoint demo demo-quick demo-accurate demo-prostate demo-prostate-quick test test-fast test-demo bench lint clean
 
 $(STAMP): pyproject.toml constraints.txt
 	@test -n "$(PYTHON)" || { echo "error: no python >= 3.12 found on PATH" >&2; exit 2; }
@@ -24,7 +24,7 @@ demo-quick: $(STAMP)
 	$(PY) demos/prostate_elastography.py --quick --out out/demo-quick
 
 # The same story with the organ walls meshed 0.2 h instead of 0.35 h: E within ~1 %
-# instead of ~4 %, at ~3x the time (see README).
+# instead of ~4 %, at ~3x the time (see docs/validation.md).
 demo-accurate: $(STAMP)
 	$(PY) demos/prostate_elastography.py --organ-size 0.2 --out out/demo-accurate
 
@@ -70,8 +70,18 @@ bench-adjoint: $(STAMP)
 # ruff: pyflakes, pycodestyle, pyupgrade and bugbear checks; mypy over the package
 # (both configured in pyproject.toml).
 lint: $(STAMP)
-	$(PY) -m ruff check fenics_elasto tests benchmarks demos
+	$(PY) -m ruff check fenics_elasto tests benchmarks demos docs
 	$(PY) -m mypy fenics_elasto
 
 clean:
 	rm -rf $(VENV) $(BENCH) out .pytest_cache
+
+# The docs site (docs/, Sphinx + MyST; docs/tooling.md says why) into docs/_build/html,
+# warnings as errors. autodoc imports the package, so it builds in the project's venv.
+DOCS_STAMP := $(VENV)/.docs-installed
+$(DOCS_STAMP): $(STAMP)
+	$(PY) -m pip install -q -c constraints.txt -e '.[docs]'
+	touch $(DOCS_STAMP)
+
+docs: $(DOCS_STAMP)
+	$(PY) -m sphinx -W --keep-going -q -b html docs docs/_build/html

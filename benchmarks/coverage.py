@@ -16,7 +16,7 @@ Draws whose interval is wider than the bounds are refused by default ("undetermi
 here they are estimated anyway (allow_undetermined) and counted in the last column.
 The interval states noise only; without noise the discretisation bias (source against
 target mesh) is all there is, and coverage then says how large that bias is against
-the noise-free sigma (see the README).
+the noise-free sigma (see docs/uncertainty.md).
 """
 
 from __future__ import annotations

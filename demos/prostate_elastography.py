@@ -83,7 +83,7 @@ def main():
               f"reduced {recovered(speedups[-1][2]):.2f} ({speedups[-1][2]['seconds']:.1f} s)", flush=True)
     lines += ([""] + speedup_table(speedups, trainer.force_dofs, rank)) if speedups else []
     lines += ["", "With surface targets the full force space does not determine E: the organ walls slide "
-                  "along the target and every E fits (see README)."]
+                  "along the target and every E fits (see docs/limits.md)."]
     print("\n".join(lines), flush=True)
 
     print("5. Fig. 8: rank against E error, iterations and time", flush=True)

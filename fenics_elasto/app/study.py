@@ -82,7 +82,7 @@ def simulate_examples(source: Path, out: Path, count: int, seed: int = 1, patien
 
     Bladder and rectum move as drawn; the prostate keeps the patient's one E (the first
     example's draw from EXAMPLE_E -- the later draws stay in the random stream, so the
-    wall motions are those the README's tables were made with), which costs one
+    wall motions are those the validation tables (docs/) were made with), which costs one
     factorization per patient. The bases cannot tell: the walls move as prescribed
     whatever the prostate's E, and training matches each organ alone, so the examples'
     wall surfaces -- all that the loaded-node bases learn -- do not depend on it

@@ -1,6 +1,6 @@
 """A scene: mesh with named regions and boundaries, materials, and the problem's settings.
 
-A scene is a gmsh ``.msh`` plus a ``problem.toml`` beside it (the format: README, "Scenes").
+A scene is a gmsh ``.msh`` plus a ``problem.toml`` beside it (the format: docs/scenes.md).
 Everything a user can get wrong is checked here, once, with a one-line message.
 """
 

@@ -1,5 +1,5 @@
 """The package's rooms: data flows one way through the layers, and every class and
-function stays short enough to read (README: "Layout")."""
+function stays short enough to read (docs/layout.md)."""
 
 import ast
 from pathlib import Path

@@ -209,7 +209,7 @@ def test_phantom_files_motion_and_fiducials(truth_dir):
 # The toolkit's own command line with default settings on targets it did not make
 # (scikit-fem P2 on finer, differently built curved meshes, sampled on the exact
 # geometry). Before the sag-free matching and the estimator fixes these were off by
-# 17-54 % (inclusion) and up to 152 % (stretched top); see the README's tables.
+# 17-54 % (inclusion) and up to 152 % (stretched top); see docs/validation.md.
 
 
 def _estimate(problem, out, *settings) -> dict:

@@ -145,7 +145,7 @@ def profile_std(s, ends, open_ends) -> np.ndarray:
     while the estimates scatter by the information, which adds over the sides where
     lengths do not. The inclusion's E at 0.5 % noise (30 draws): arms / 1.96 of 0.31 and
     0.88 in log E against a spread of the estimates of 0.36; sigma / spread 1.56 from the
-    half-width, 1.16 from this. Chosen after measuring several rules (README: "How sure")."""
+    half-width, 1.16 from this. Chosen after measuring several rules (docs/uncertainty.md)."""
     s = np.asarray(s, float)
     ends = np.asarray(ends, float)
     arms = np.abs(ends - s[:, None]) / Z95

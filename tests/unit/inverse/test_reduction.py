@@ -156,7 +156,7 @@ def test_patients_meshed_around_an_atlas_share_its_nodes(tmp_path):
 def test_held_out_patient_with_bases_from_others(tmp_path, capsys):
     """Bases trained from the command line on patients 1-3 (meshed around patient 0's
     organs) fit a patient they never saw and recover its E through `estimate` with a
-    [reduction] table (coarse P2 phantom: the bound is loose, see README)."""
+    [reduction] table (coarse P2 phantom: the bound is loose, see docs/validation.md)."""
     from fenics_elasto.app.cli import main
     from fenics_elasto.app.study import simulate_examples, simulate_targets
 
