@@ -1,0 +1,104 @@
+"""3D estimates on meshes users have: the pelvis phantom meshed by plain gmsh (order 1,
+straight-sided, and order 2), never by this package; the truth from scikit-fem on its
+own finer curved mesh with wall motion no affine map has (tests/independent.py); the
+organ surfaces and 4 fiducials inside the prostate observed. The README's workflow:
+`train --synthetic 120 --rank 80`, then `estimate` at default settings.
+
+benchmarks/family3d.py runs the whole family (two geometries, E 25 / 50 / 75).
+"""
+
+import json
+
+import numpy as np
+import pytest
+
+import independent as ind
+from fenics_elasto.app.cli import main
+
+TRUE_E = 50.0
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("family3d")]  # one worker: the truth is made once
+
+
+@pytest.fixture(scope="module")
+def family(tmp_path_factory):
+    """The scikit-fem truth at prostate E = 50 and the folder for the sources."""
+    out = tmp_path_factory.mktemp("family3d")
+    return out, ind.phantom(out / "truth", TRUE_E)
+
+
+def _estimate(problem, bases, out, *settings) -> dict:
+    args = ["estimate", str(problem), "--out", str(out), "--set", f"reduction={{bases='{bases}'}}"]
+    for setting in settings:
+        args += ["--set", setting]
+    assert main(args) == 0
+    return json.loads((out / "result.json").read_text())
+
+
+def _source(family, order: int):
+    """A plain gmsh source of the phantom, its bases, and a problem with the targets."""
+    out, truth = family
+    problem = ind.plain_source(out / "sources", order)
+    bases = problem.parent / "bases.npz"
+    if not bases.is_file():
+        assert main(["train", str(problem), "--synthetic", "120", "--rank", "80", "--out", str(bases)]) == 0
+    surfaces = {g: truth[g] for g in ("bladder", "prostate_surface", "rectum")}
+    both = ind.retarget(problem, {"surfaces": surfaces, "landmarks": truth["fiducials"]}, name="problem_both.toml")
+    alone = ind.retarget(problem, {"surfaces": surfaces}, name="problem_surfaces.toml")
+    return both, alone, bases
+
+
+@pytest.fixture(scope="module")
+def estimates(family, tmp_path_factory):
+    """(order, data) -> result.json, each estimate run once: data "both" (surfaces and
+    fiducials) or "surfaces"."""
+    done: dict = {}
+
+    def get(order: int, data: str) -> dict:
+        if (order, data) not in done:
+            both, alone, bases = _source(family, order)
+            out = tmp_path_factory.mktemp(f"o{order}-{data}")
+            done[order, data] = _estimate(both if data == "both" else alone, bases, out)
+        return done[order, data]
+
+    return get
+
+
+# order -> the bound on |E / truth - 1|: measured -3.92 % (order 1, curved on load; its
+# geometry is a reconstruction, ~1e-3 from the exact ellipsoid) and -0.16 % (order 2).
+BOUNDS = {1: 0.05, 2: 0.03}
+
+
+@pytest.mark.parametrize("order", [1, 2])
+def test_prostate_E_on_a_plain_gmsh_source(estimates, order):
+    """(a) order 1: straight-sided, curved on load; (b) order 2: gmsh's own curved mesh.
+    Close to the truth, the interval holding it; (c) on the curved mesh the noise-free
+    target's error is no larger than the model's own part of sigma (mesh and bases)
+    says. On the straight-sided one the geometry's error is larger than that part; the
+    interval holds the truth through its noise part (widened: a structured residual)."""
+    result = estimates(order, "both")
+    E = result["materials"]["prostate"]["E"]
+    u = result["uncertainty"]["prostate.E"]
+    low, high = u["ci95"]
+    parts = u["parts"]
+    print(f"plain gmsh order {order}: E = {E:.3f} ({100 * (E / TRUE_E - 1):+.2f} %), [{low:.2f}, {high:.2f}], "
+          f"parts {parts}, mesh shift {result['uncertainty'].get('mesh_shift')}")
+    assert abs(E / TRUE_E - 1) < BOUNDS[order], E
+    assert low < TRUE_E < high, (low, high)
+    assert parts["mesh"] > 0 and "mesh_shift" in result["uncertainty"], result["uncertainty"]
+    if order == 2:
+        assert np.hypot(parts["mesh"], parts["bases"]) >= abs(E - TRUE_E), parts
+
+
+def test_fiducials_narrow_the_interval_around_the_truth(estimates):
+    """(d) Four fiducials inside the prostate beside the organ surfaces (as certain as a
+    surface point, the default): the interval narrower than from the surfaces alone,
+    and still holding the truth."""
+    surfaces_only, with_fiducials = estimates(1, "surfaces"), estimates(1, "both")
+    widths = []
+    for result in (surfaces_only, with_fiducials):
+        low, high = result["uncertainty"]["prostate.E"]["ci95"]
+        widths.append(high - low)
+        print("E", result["materials"]["prostate"]["E"], (low, high))
+    low, high = with_fiducials["uncertainty"]["prostate.E"]["ci95"]
+    assert low < TRUE_E < high, (low, high)
+    assert widths[1] < 0.8 * widths[0], widths
