@@ -22,6 +22,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -73,7 +74,7 @@ def read_label_image(path, label: str) -> LabelImage:
 def _read_nifti(path: Path) -> tuple[np.ndarray, np.ndarray]:
     import nibabel as nib
 
-    image = nib.load(str(path))
+    image: Any = nib.load(str(path))  # a Nifti1Image (or Nifti2Image) for these suffixes
     return np.asanyarray(image.dataobj), np.asarray(image.affine, dtype=float)
 
 

@@ -30,7 +30,7 @@ import numpy as np
 
 from fenics_elasto.files.images import LabelImage, read_label_image
 from fenics_elasto.geometry.label_surfaces import Interfaces, coarsened, smoothed, surface_nets
-from fenics_elasto.mesh.repair import Shell, shells_of
+from fenics_elasto.mesh.repair import Shell, enclosed_volume, shells_of
 from fenics_elasto.util.errors import require
 from fenics_elasto.util.logs import log
 
@@ -103,7 +103,10 @@ def _check_border(compact: np.ndarray, label: str) -> None:
 
 def _shells(interfaces: Interfaces, inside: list[int], label: str, role: str, name: str) -> list[Shell]:
     points, triangles = interfaces.boundary_of(inside)
-    return shells_of(smoothed(points, triangles), triangles, label, role, name)
+    points = smoothed(points, triangles)
+    if enclosed_volume(points, triangles) < 0:  # SurfaceNets orients by label order: outward here, not a repair
+        triangles = triangles[:, [0, 2, 1]]
+    return shells_of(points, triangles, label, role, name)
 
 
 def label_shells(spec: dict, folder: Path) -> tuple[Shell | None, list[Shell]]:
