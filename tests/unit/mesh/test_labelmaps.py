@@ -112,3 +112,39 @@ def test_surface_of_a_deformed_label_map_is_within_a_voxel(tmp_path):
     gap = np.abs(level - 1) * (1.1 * lm.AXES).min()
     assert gap.max() < lm.SPACING.max()
     assert len(triangles) > 500
+
+
+def _leaking() -> np.ndarray:
+    labels = lm.label_map()
+    labels[labels.shape[0] // 2:, labels.shape[1] // 2, labels.shape[2] // 2] = 2  # a tumour spur to the outside
+    labels[-1] = 0
+    return labels
+
+
+@pytest.mark.parametrize("case, words", [
+    ("float", ["not a label map", "non-integer"]),
+    ("absent", ["body: label 7 is not in the image"]),
+    ("leak", ["regions.tumour (label 2) leaks out of the body"]),
+    ("unreadable", ["cannot read it as an image"]),
+    ("border", ["image border"]),
+])
+def test_bad_label_maps_are_one_line(tmp_path, capsys, case, words):
+    from fenics_elasto.app.cli import main
+
+    labels, spec = lm.label_map(), SPEC
+    if case == "float":
+        labels = labels.astype(np.float32) + 0.25
+    elif case == "absent":
+        spec = SPEC.replace("label = [1, 2]", "label = [1, 2, 7]").replace("label = 2\n", "label = [2, 7]\n")
+    elif case == "leak":
+        labels = _leaking()
+    elif case == "border":
+        labels[0, 10:12, 10:12] = 1
+    path = scene_from(tmp_path, "seg.nii.gz", labels, spec)
+    if case == "unreadable":
+        (tmp_path / "seg.nii.gz").write_bytes(b"not an image at all")
+    assert main(["scene", str(path), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and err.startswith("error: "), err
+    for word in words:
+        assert word in err, (word, err)
