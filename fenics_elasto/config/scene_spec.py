@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from fenics_elasto.config.schema import (REQUIRED, Choice, GroupName, Key, Named, Names, Number, String, Table,
-                                         Vector, Where, show)
+from fenics_elasto.config.schema import (REQUIRED, Choice, GroupName, Key, Labels, Named, Names, Number, String,
+                                         Table, Vector, Where, show)
 from fenics_elasto.config.toml import apply_overrides, read_toml
 
 def _check_spec(spec: dict, where: Where) -> dict:
@@ -28,7 +28,48 @@ def _check_spec(spec: dict, where: Where) -> dict:
     for shape in ("box", "ellipsoid"):
         if spec["body"][shape] is not None and not (spec["regions"] or spec["cavities"]):
             where.at("body").at(shape).fail("surrounds the regions and cavities, but there are none")
+    return _check_labels(spec, where) if spec["labels"] else _check_no_labels(spec, where)
+
+
+def _check_no_labels(spec: dict, where: Where) -> dict:
+    """Without a [labels] image, every shape comes from a surface file (or a box)."""
+    for at, table in _shapes(spec, where):
+        if table.get("label") is not None:
+            at.at("label").fail("a label needs a label-map image: add [labels] image = \"...\"")
     return spec
+
+
+def _check_labels(spec: dict, where: Where) -> dict:
+    """With a [labels] image every shape is a set of labels that nest: regions within
+    the body's labels, cavities outside them, no label used twice."""
+    owner: dict[int, str] = {}
+    for at, table in _shapes(spec, where):
+        if table.get("surface") is not None:
+            at.at("surface").fail("the scene comes from the [labels] image: give label = N, not a surface file")
+        if at.keys[0] == "body":  # a region's labels are the body's too
+            continue
+        for value in table.get("label") or []:
+            if value in owner:
+                at.at("label").fail(f"label {value} is also {owner[value]}'s; a label belongs to one region or cavity")
+            owner[value] = at.path()
+    body = spec["body"]["label"]
+    if body is not None:
+        for kind in ("regions", "cavities"):
+            for name, table in spec[kind].items():
+                outside = [v for v in table["label"] if (v in body) != (kind == "regions")]
+                if outside:
+                    rule = "not one of body.label: a region is part of the body" if kind == "regions" else \
+                        "one of body.label: a cavity is a hole in the body, not part of it"
+                    where.at(kind).at(name).at("label").fail(f"label {outside[0]} is {rule} ({body})")
+    return spec
+
+
+def _shapes(spec: dict, where: Where):
+    """(where, table) of every region and cavity, and of the body."""
+    for kind in ("regions", "cavities"):
+        for name, table in spec[kind].items():
+            yield where.at(kind).at(name), table
+    yield where.at("body"), spec["body"]
 
 
 def _margin():
@@ -39,15 +80,18 @@ SCENE_SPEC = Table({
     "units": Key(Choice("mm", "cm", "m"), "mm"),
     "size": Key(Number(gt=0)),
     "organ_size": Key(Number(gt=0)),
+    "labels": Key(Table({"image": Key(String("a label-map image"), REQUIRED)})),
     "body": Key(Table({
-        "surface": Key(String("a surface file")), "box": Key(_margin()), "ellipsoid": Key(_margin()),
-        "material": Key(GroupName(), "tissue"),
-    }, exclusive=[("surface", "box", "ellipsoid")], one_of=("surface", "box", "ellipsoid"),
-        expected="a table {surface, box or ellipsoid; material}"), REQUIRED),
-    "regions": Key(Named(Table({"surface": Key(Names("surface file", nonempty=True), REQUIRED)}), "[regions.NAME] tables",
-                         group_names=True), {}),
-    "cavities": Key(Named(Table({"surface": Key(String("a surface file"), REQUIRED)}), "[cavities.NAME] tables",
-                          group_names=True), {}),
+        "surface": Key(String("a surface file")), "label": Key(Labels()), "box": Key(_margin()),
+        "ellipsoid": Key(_margin()), "material": Key(GroupName(), "tissue"),
+    }, exclusive=[("surface", "label", "box", "ellipsoid")], one_of=("surface", "label", "box", "ellipsoid"),
+        expected="a table {surface, label, box or ellipsoid; material}"), REQUIRED),
+    "regions": Key(Named(Table({"surface": Key(Names("surface file", nonempty=True)), "label": Key(Labels())},
+                               exclusive=[("surface", "label")], one_of=("surface", "label")),
+                         "[regions.NAME] tables", group_names=True), {}),
+    "cavities": Key(Named(Table({"surface": Key(String("a surface file")), "label": Key(Labels())},
+                                exclusive=[("surface", "label")], one_of=("surface", "label")),
+                          "[cavities.NAME] tables", group_names=True), {}),
     "patches": Key(Named(Table({"side": Key(Table({
         "point": Key(Vector((3,)), REQUIRED), "normal": Key(Vector((3,), nonzero=True), REQUIRED),
     }, expected="a table {point, normal}"), REQUIRED)}), "[patches.NAME] tables", group_names=True), {}),

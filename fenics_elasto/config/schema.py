@@ -231,6 +231,22 @@ class Names(Node):
         return list(names)
 
 
+class Labels(Node):
+    """Label values of a label-map image: a positive integer, or a list of them (0 is the
+    background by convention)."""
+
+    expected = "a label (an integer >= 1) or a list of labels"
+
+    def check(self, value, where):
+        labels = [value] if not isinstance(value, (list, tuple)) else list(value)
+        if not labels or not all(isinstance(v, int) and not isinstance(v, bool) and v >= 1 for v in labels):
+            where.fail(f"expected {self.expected}, got {given(value)}")
+        twice = sorted({v for v in labels if labels.count(v) > 1})
+        if twice:
+            where.fail(f"lists label {twice[0]} twice")
+        return labels
+
+
 class Vector(Node):
     """A list of finite numbers of one of the allowed lengths."""
 

@@ -1,4 +1,4 @@
-"""Scenes from organ surface files: the ``scene`` command.
+"""Scenes from organ surface files (or a label-map image, labelmaps.py): the ``scene`` command.
 
 A segmentation gives closed surfaces: the body's outer boundary (or we put a box or an
 ellipsoid around the organs), regions (organs with a material of their own) and
@@ -39,6 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
+from fenics_elasto.mesh.labelmaps import coarsen, label_shells
 from fenics_elasto.mesh.repair import Shell, closed_shells, cut_by_planes, enclosed_volume, sharp_edges, triangle_areas
 from fenics_elasto.util.budget import CELLS_PER_VOLUME, check_mesh_cost
 from fenics_elasto.config.scene_spec import read_scene_spec
@@ -128,6 +129,15 @@ def ellipsoid_shell(organs: list[Shell], margin: float, material: str) -> Shell:
             return Shell("body", material, "body.ellipsoid", points, triangles)
         scale *= 1 + (margin - gap) / (scale * axes.min())
     raise RuntimeError("ellipsoid body: no scale keeps the margin")  # cannot happen: the gap grows with scale
+
+
+def _input_shells(spec: dict, folder: Path) -> tuple[Shell, list[Shell]]:
+    """The body's and the organs' shells, from surface files or a label-map image."""
+    if spec["labels"]:
+        body, organs = label_shells(spec, folder)
+        return body or _body_shell(spec, folder, organs), organs
+    organs = _organ_shells(spec, folder)
+    return _body_shell(spec, folder, organs), organs
 
 
 def _body_shell(spec: dict, folder: Path, organs: list[Shell]) -> Shell:
@@ -515,9 +525,11 @@ def build_scene_from_spec(spec_path, out, size: float | None = None) -> Path:
     ``out/scene.msh`` and ``out/problem.toml``; returns the problem.toml path."""
     spec_path, out = Path(spec_path), Path(out)
     spec = read_spec(spec_path)
-    organs = _organ_shells(spec, spec_path.parent)
-    body = _body_shell(spec, spec_path.parent, organs)
+    body, organs = _input_shells(spec, spec_path.parent)
     size, organ_size = _sizes(spec, body, size)
+    if spec["labels"]:  # voxel surfaces: about one vertex per boundary voxel, often far finer than organ_size
+        organs = coarsen(organs, organ_size)
+        body = coarsen([body], organ_size)[0] if spec["body"]["label"] else body
     check_mesh_cost(f"{spec_path.name}: size {size:g}, organ_size {organ_size:g}",
                     _expected_cells(body, organs, size, organ_size), 3, size)
     shells = [body, *organs]

@@ -253,6 +253,11 @@ def self_intersecting(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
 def closed_shells(path: Path, label: str, role: str, name: str) -> list[Shell]:
     """The file's closed components, repaired (see the module docstring), outward."""
     points, triangles = read_triangles(path, label)
+    return shells_of(points, triangles, label, role, name)
+
+
+def shells_of(points: np.ndarray, triangles: np.ndarray, label: str, role: str, name: str) -> list[Shell]:
+    """The closed components of a triangulation in memory, repaired like a file's, outward."""
     points, triangles = _merge_points(points, triangles, label)
     triangles = _drop_bad_triangles(triangles, label)
     require(len(triangles) > 0, f"{label}: no triangles left after dropping collapsed ones")

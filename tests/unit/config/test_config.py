@@ -403,7 +403,7 @@ BAD_SPECS = {
     "organ_size a string": ({"organ_size": "2"}, (), "scene.toml: organ_size:", ['got "2" (a string)']),
     "no body": ({"body": DROP}, (), "scene.toml: [body]:", ["missing"]),
     "body of two shapes": ({"body": {"box": {"margin": 2}}}, (), "scene.toml: [body]:", ["surface or box, not both"]),
-    "body of none": ({"body": {"surface": DROP}}, (), "scene.toml: [body]:", ["surface or box or ellipsoid"]),
+    "body of none": ({"body": {"surface": DROP}}, (), "scene.toml: [body]:", ["surface or label or box or ellipsoid"]),
     "box margin 0": ({"body": {"surface": DROP, "box": {"margin": 0}}}, (), "scene.toml: body.box.margin:", ["got 0"]),
     "box without margin": ({"body": {"surface": DROP, "box": {}}}, (), "scene.toml: body.box.margin:", ["missing"]),
     "box around nothing": ({"body": {"surface": DROP, "ellipsoid": {"margin": 2}}, "regions": DROP, "cavities": DROP}, (),
@@ -450,9 +450,9 @@ def test_scene_spec_defaults(tmp_path):
     path = tmp_path / "scene.toml"
     path.write_text('[body]\nbox = { margin = 20.0 }\n[regions.prostate]\nsurface = "p.stl"\n')
     assert read_scene_spec(path, ["body.box.margin=10"]) == {
-        "units": "mm", "size": None, "organ_size": None,
-        "body": {"surface": None, "box": {"margin": 10.0}, "ellipsoid": None, "material": "tissue"},
-        "regions": {"prostate": {"surface": ["p.stl"]}}, "cavities": {}, "patches": {},
+        "units": "mm", "size": None, "organ_size": None, "labels": None,
+        "body": {"surface": None, "label": None, "box": {"margin": 10.0}, "ellipsoid": None, "material": "tissue"},
+        "regions": {"prostate": {"surface": ["p.stl"], "label": None}}, "cavities": {}, "patches": {},
     }
     assert spec(overrides=["body.box={margin=5}"])["body"]["surface"] is None  # one shape replaces the other
 

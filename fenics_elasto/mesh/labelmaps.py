@@ -1,0 +1,148 @@
+"""Scenes from a label-map image: the spec's labels -> the closed shells anatomy.py meshes.
+
+A spec with ``[labels] image = ...`` names label values instead of surface files
+(interface.md, "Scenes from label maps"): the body is the union of ``body.label`` (with
+its cavities and any unlabelled voxels it encloses), a region or a cavity is the union of
+its ``label``. ``label_shells``:
+
+1. reads the image (files/images.py: world coordinates as its header gives them) and
+   checks that every label named is in it;
+2. relabels it compactly -- 0 outside the body, 1 the body's own material, then one label
+   per region and per cavity -- and runs SurfaceNets once on that (geometry/
+   label_surfaces.py), anisotropic voxels as they are;
+3. checks from the interfaces' two sides that the labels nest as a scene must: no region
+   or cavity on the body's outer boundary, none touching another, the body off the image
+   border -- one line each, naming the spec keys and labels;
+4. smooths each closed surface without shrinking it and hands it to the surface-file
+   path's own checks (repair.shells_of), so the nesting, meshing and curving that follow
+   are the surface files' (anatomy.py).
+
+``coarsen`` then brings each shell down to about organ_size / 2 edges once the sizes
+are known (SurfaceNets gives about one vertex per boundary voxel).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from fenics_elasto.files.images import LabelImage, read_label_image
+from fenics_elasto.geometry.label_surfaces import Interfaces, coarsened, smoothed, surface_nets
+from fenics_elasto.mesh.repair import Shell, enclosed_volume, shells_of
+from fenics_elasto.util.errors import require
+from fenics_elasto.util.logs import log
+
+OUTSIDE, BODY = 0, 1
+
+
+@dataclass
+class Part:
+    """One shape of the spec as labels: its role, name, spec key and label values."""
+
+    role: str  # "region" or "cavity"
+    name: str
+    key: str  # 'regions.tumour'
+    labels: list[int]
+
+    def describe(self) -> str:
+        return f"{self.key} (label {', '.join(map(str, self.labels))})"
+
+
+def _parts(spec: dict) -> list[Part]:
+    parts = [Part("region", n, f"regions.{n}", r["label"]) for n, r in spec["regions"].items()]
+    return parts + [Part("cavity", n, f"cavities.{n}", c["label"]) for n, c in spec["cavities"].items()]
+
+
+def _check_present(image: LabelImage, spec: dict, parts: list[Part], label: str) -> None:
+    present = set(np.unique(image.labels).tolist()) - {0}
+    named = [("body", v) for v in spec["body"]["label"] or []] + [(p.key, v) for p in parts for v in p.labels]
+    for key, value in named:
+        require(value in present, f"{label}: {key}: label {value} is not in the image "
+                f"(its labels: {', '.join(map(str, sorted(present)))})")
+
+
+def compact_labels(image: LabelImage, spec: dict, parts: list[Part]) -> np.ndarray:
+    """0 outside the body, 1 the body's material, 2 + k the k-th part (regions, then
+    cavities). With a box or ellipsoid body, 0 is everything but the parts."""
+    from scipy.ndimage import binary_fill_holes
+
+    compact = np.zeros(image.labels.shape, np.int32)
+    if spec["body"]["label"] is not None:
+        solid = np.isin(image.labels, spec["body"]["label"] + [v for p in parts if p.role == "cavity" for v in p.labels])
+        compact[binary_fill_holes(solid)] = BODY
+    for k, part in enumerate(parts):
+        compact[np.isin(image.labels, part.labels)] = 2 + k
+    return compact
+
+
+def _check_nesting(sides: np.ndarray, parts: list[Part], has_body: bool, label: str) -> None:
+    """Every part wrapped in body material: no part on the outer boundary (with a label
+    body), no two parts touching."""
+    pairs = {tuple(p) for p in np.unique(sides, axis=0).tolist()}
+    for a, b in sorted(pairs):
+        if a == OUTSIDE and b >= 2 and has_body:
+            part = parts[b - 2]
+            where = "leaks out of the body: it reaches the body's outer boundary" if part.role == "region" else \
+                "opens to the outside of the body"
+            require(False, f"{label}: {part.describe()} {where}; it must be wrapped in the body's material")
+        if a >= 2:
+            require(False, f"{label}: {parts[a - 2].describe()} and {parts[b - 2].describe()} touch; the scene "
+                    "needs the body's material between them")
+
+
+def _check_border(compact: np.ndarray, label: str) -> None:
+    """The body (or a part) on the image's border: the segmentation was cut off there."""
+    for axis, name in enumerate("ijk"):
+        for end in (0, compact.shape[axis] - 1):
+            face = np.take(compact, end, axis=axis)
+            require(not face.any(), f"{label}: labelled voxels on the image border ({name} = {end}): the "
+                    "segmentation is cut off there; pad the image or crop less")
+
+
+def _shells(interfaces: Interfaces, inside: list[int], label: str, role: str, name: str) -> list[Shell]:
+    points, triangles = interfaces.boundary_of(inside)
+    points = smoothed(points, triangles)
+    if enclosed_volume(points, triangles) < 0:  # SurfaceNets orients by label order: outward here, not a repair
+        triangles = triangles[:, [0, 2, 1]]
+    return shells_of(points, triangles, label, role, name)
+
+
+def label_shells(spec: dict, folder: Path) -> tuple[Shell | None, list[Shell]]:
+    """The body's shell (None when the spec puts a box or an ellipsoid around the
+    organs) and the regions' and cavities' shells, from the spec's label-map image."""
+    file = spec["labels"]["image"]
+    label = f"labels.image ({file})"
+    image = read_label_image(folder / file, label)
+    parts = _parts(spec)
+    _check_present(image, spec, parts, label)
+    compact = compact_labels(image, spec, parts)
+    has_body = spec["body"]["label"] is not None
+    _check_border(compact, label)
+    interfaces = surface_nets(compact, image.affine)
+    _check_nesting(interfaces.sides, parts, has_body, label)
+    spacing = " x ".join(f"{s:.3g}" for s in image.spacing)
+    log.info(f"{label}: {' x '.join(map(str, compact.shape))} voxels of {spacing} {spec['units']}")
+    organs = [s for k, p in enumerate(parts) for s in _shells(interfaces, [2 + k], f"{p.describe()} of {file}", p.role, p.name)]
+    if not has_body:
+        return None, organs
+    body = _shells(interfaces, list(range(1, 2 + len(parts))), f"body (label {spec['body']['label']}) of {file}", "body",
+                   spec["body"]["material"])
+    require(len(body) == 1, f"{label}: body.label {spec['body']['label']}: {len(body)} separate pieces; the body must be one")
+    return body[0], organs
+
+
+def coarsen(shells: list[Shell], organ_size: float) -> list[Shell]:
+    """Each shell decimated to about organ_size / 2 edges where finer, and checked again."""
+    out = []
+    for shell in shells:
+        points, triangles = coarsened(shell.points, shell.triangles, organ_size)
+        if len(triangles) == len(shell.triangles):
+            out.append(shell)
+            continue
+        log.info(f"{shell.label}: {len(shell.triangles)} -> {len(triangles)} triangles (edges ~ organ_size / 2)")
+        pieces = shells_of(points, triangles, shell.label, shell.role, shell.name)
+        require(len(pieces) == 1, f"{shell.label}: split into {len(pieces)} pieces when coarsened; try a smaller organ_size")
+        out.append(pieces[0])
+    return out

@@ -1,0 +1,150 @@
+"""Scenes from label-map images (interface.md, "Scenes from label maps"): a synthetic
+kidney (label 1, an ellipsoid) holding a tumour (label 2, a ball) on anisotropic voxels
+with a rotated, shifted affine. Region volumes against the analytic shapes, the mesh in
+world coordinates, conforming interfaces, the same scene from NIfTI and NRRD/MetaImage,
+target surfaces from a deformed label map, and every refusal as one line + exit 2."""
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import dolfinx
+import labelmaps as lm
+from fenics_elasto.files.images import read_label_image
+from fenics_elasto.geometry.label_surfaces import label_surface
+from fenics_elasto.config.scene_spec import read_scene_spec
+from fenics_elasto.mesh.anatomy import build_scene_from_spec
+from fenics_elasto.mesh.labelmaps import label_shells
+from fenics_elasto.model.scene import load_scene
+from test_anatomy import measures
+
+SPEC = """units = "mm"
+size = 8.0
+organ_size = 2.5
+[labels]
+image = "{image}"
+[body]
+label = [1, 2]
+material = "kidney"
+[regions.tumour]
+label = 2
+"""
+BALL = 4 / 3 * math.pi * lm.RADIUS**3
+ELLIPSOID = 4 / 3 * math.pi * lm.AXES.prod()
+
+
+def scene_from(folder: Path, image: str, labels: np.ndarray, spec: str = SPEC) -> Path:
+    folder.mkdir(parents=True, exist_ok=True)
+    (lm.write_nifti if image.endswith((".nii", ".nii.gz")) else lm.write_itk)(folder / image, labels)
+    (folder / "spec.toml").write_text(spec.format(image=image))
+    return folder / "spec.toml"
+
+
+@pytest.fixture(scope="module")
+def kidney(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("kidney")
+    return build_scene_from_spec(scene_from(folder, "seg.nii.gz", lm.label_map()), folder / "out")
+
+
+def test_region_volumes_match_the_analytic_shapes(kidney):
+    """The body within 3 %. The tumour (a 6 mm ball, 3.3 voxels across in k) loses 7.6 %
+    (measured): its smoothed surface holds -3.2 %, and gmsh's remesh at organ_size 2.5
+    loses the rest where elements are kept straight-sided -- a known defect (#34)."""
+    _, volumes, _ = measures(kidney)
+    assert volumes["kidney"] + volumes["tumour"] == pytest.approx(ELLIPSOID, rel=0.03)
+    assert volumes["tumour"] == pytest.approx(BALL, rel=0.09)
+
+
+def test_mesh_lies_in_the_images_world_coordinates(kidney):
+    """The bounding box of the affine-mapped ellipsoid, within a voxel (the largest spacing / 2)."""
+    x = load_scene(kidney).mesh.geometry.x
+    box = np.array([x.min(axis=0), x.max(axis=0)])
+    assert np.abs(box - lm.world_ellipsoid_bounds()).max() < 0.5 * lm.SPACING.max()
+
+
+def test_tumour_surface_is_shared_by_both_regions_cells(kidney):
+    scene = load_scene(kidney)
+    mesh = scene.mesh
+    mesh.topology.create_connectivity(2, 3)
+    facet_cells = mesh.topology.connectivity(2, 3)
+    tag = {m.name: m.tag for m in scene.materials}
+    cell_tag = np.zeros(mesh.topology.index_map(3).size_local, np.int32)
+    cell_tag[scene.cell_tags.indices] = scene.cell_tags.values
+    sides = np.array([sorted(cell_tag[facet_cells.links(f)]) for f in scene.facet_groups["tumour_surface"]])
+    assert len(sides) > 100
+    assert (sides == sorted([tag["kidney"], tag["tumour"]])).all()
+    centre = lm.world_centre()
+    radius = np.linalg.norm(mesh.geometry.x[dolfinx.mesh.entities_to_geometry(
+        mesh, 2, scene.facet_groups["tumour_surface"])] - centre, axis=2)
+    assert np.abs(radius - lm.RADIUS).max() < lm.SPACING.max()  # measured 0.90 mm: gmsh's nodes drift off the 0.35 mm surface
+
+
+@pytest.mark.parametrize("suffix", [".nrrd", ".mha"])
+def test_nrrd_and_metaimage_give_the_niftis_world_frame(tmp_path, suffix):
+    nifti = read_label_image(scene_from(tmp_path, "seg.nii.gz", lm.label_map()).parent / "seg.nii.gz", "nifti")
+    other = read_label_image(scene_from(tmp_path, f"seg{suffix}", lm.label_map()).parent / f"seg{suffix}", "itk")
+    assert (other.labels == nifti.labels).all()
+    assert np.allclose(other.affine, nifti.affine, atol=1e-6)
+    assert np.allclose(nifti.affine, lm.affine())
+
+
+def test_nrrd_scene_has_the_niftis_surfaces(tmp_path):
+    """The shells gmsh gets are the same to float32 rounding (NIfTI stores its sform in
+    float32). gmsh's own remesh is not compared: it moves with perturbations that small."""
+    shells = {}
+    for image in ("seg.nii.gz", "seg.nrrd"):
+        spec = scene_from(tmp_path / image.replace(".", "_"), image, lm.label_map())
+        shells[image] = label_shells(read_scene_spec(spec), spec.parent)
+    (body, organs), (body2, organs2) = shells.values()
+    assert np.allclose(body.points, body2.points, atol=1e-4) and (body.triangles == body2.triangles).all()
+    assert np.allclose(organs[0].points, organs2[0].points, atol=1e-4)
+
+
+def test_surface_of_a_deformed_label_map_is_within_a_voxel(tmp_path):
+    """The target surface of the ellipsoid grown by 1.1 about its centre: every point
+    within a voxel of the analytic ellipsoid, in world coordinates."""
+    labels = lm.label_map(scale=1.1)
+    points, triangles = label_surface(labels, lm.affine(), [1, 2])
+    local = (points - lm.world_centre()) @ lm.rotation()  # back to the image's axes
+    level = np.sqrt(((local / (1.1 * lm.AXES)) ** 2).sum(axis=1))
+    gap = np.abs(level - 1) * (1.1 * lm.AXES).min()
+    assert gap.max() < lm.SPACING.max()
+    assert len(triangles) > 500
+
+
+def _leaking() -> np.ndarray:
+    labels = lm.label_map()
+    labels[labels.shape[0] // 2:, labels.shape[1] // 2, labels.shape[2] // 2] = 2  # a tumour spur to the outside
+    labels[-1] = 0
+    return labels
+
+
+@pytest.mark.parametrize("case, words", [
+    ("float", ["not a label map", "non-integer"]),
+    ("absent", ["body: label 7 is not in the image"]),
+    ("leak", ["regions.tumour (label 2) leaks out of the body"]),
+    ("unreadable", ["cannot read it as an image"]),
+    ("border", ["image border"]),
+])
+def test_bad_label_maps_are_one_line(tmp_path, capsys, case, words):
+    from fenics_elasto.app.cli import main
+
+    labels, spec = lm.label_map(), SPEC
+    if case == "float":
+        labels = labels.astype(np.float32) + 0.25
+    elif case == "absent":
+        spec = SPEC.replace("label = [1, 2]", "label = [1, 2, 7]").replace("label = 2\n", "label = [2, 7]\n")
+    elif case == "leak":
+        labels = _leaking()
+    elif case == "border":
+        labels[0, 10:12, 10:12] = 1
+    path = scene_from(tmp_path, "seg.nii.gz", labels, spec)
+    if case == "unreadable":
+        (tmp_path / "seg.nii.gz").write_bytes(b"not an image at all")
+    assert main(["scene", str(path), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and err.startswith("error: "), err
+    for word in words:
+        assert word in err, (word, err)
