@@ -17,8 +17,20 @@ from fenics_elasto.util.budget import CELLS_PER_VOLUME, check_mesh_cost
 from fenics_elasto.util.errors import require
 from fenics_elasto.mesh.gmsh_models import GmshModel, MeshingFailed, generate, node_positions, physical_surfaces, write_msh
 
-# The scenes' sources (top-level meshes/, installed as the data package fenics_elasto.meshes)
-GEO_DIR = Path(str(importlib.resources.files("fenics_elasto.meshes")))
+
+
+def _scenes_folder() -> Path:
+    """The scenes' sources: top-level meshes/, installed as the data package
+    fenics_elasto.meshes; in a source tree put on the path by hand (the adjoint
+    benchmark's own venv: an editable install's import hook is not read there), that
+    folder itself."""
+    try:
+        return Path(str(importlib.resources.files("fenics_elasto.meshes")))
+    except ModuleNotFoundError:
+        return Path(__file__).resolve().parents[2] / "meshes"
+
+
+GEO_DIR = _scenes_folder()
 PROSTATE_STL = GEO_DIR / "prostate" / "prostate.stl"  # a real prostate surface (MIT; meshes/prostate/README.md)
 SCENES = ("letter-a", "cantilever", "inclusion", "prostate-phantom")
 
