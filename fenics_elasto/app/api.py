@@ -27,7 +27,8 @@ if TYPE_CHECKING:
     from fenics_elasto.inverse.objective import InverseProblem
 
 PathLike = str | os.PathLike[str]
-PATH_KEYS = {("mesh",), ("target", "surface"), ("target", "landmarks"), ("reduction", "bases")}  # file names in a problem
+PATH_KEYS = {("mesh",), ("target", "surface"), ("target", "landmarks"), ("target", "labels", "image"),
+             ("reduction", "bases")}  # file names in a problem
 
 
 def build_scene(name: str, out: PathLike, size: float | None = None, seed: int | None = None,

@@ -109,6 +109,8 @@ def absolute_paths(scene, table: str) -> dict:
             return str(base / value)
         if key == "surfaces" and isinstance(value, dict):
             return {g: str(base / f) for g, f in value.items()}
+        if key == "labels" and isinstance(value, dict):
+            return {**value, "image": str(base / value["image"])}
         return value
 
     return {k: fix(k, v) for k, v in (scene.config[table] or {}).items() if v is not None}

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from fenics_elasto.config.schema import (REQUIRED, Boolean, Choice, Elastic, Integer, Key, Matrix, Named, Names,
+from fenics_elasto.config.schema import (REQUIRED, Boolean, Choice, Elastic, Integer, Key, LabelTargets, Matrix, Named, Names,
                                          Number, String, Table, Vector, Where, show)
 from fenics_elasto.config.toml import apply_overrides, read_toml
 
@@ -83,9 +83,10 @@ TARGET = Table({
     "landmark_weight": Key(Number(gt=0)),
     "landmark_noise": Key(Number(gt=0)),
     "noise": Key(Number(gt=0)),
+    "labels": Key(LabelTargets()),  # the deformed state's label map: GROUP = label(s), image = "..."
     "smooth": Key(Choice("auto", "off"), "auto"),
-}, exclusive=[("surface", "surfaces")], one_of=("surface", "surfaces", "landmarks"),
-   expected="a table {surface or surfaces, landmarks, landmark_weight, landmark_noise, noise, smooth}")
+}, exclusive=[("surface", "surfaces", "labels")], one_of=("surface", "surfaces", "labels", "landmarks"),
+   expected="a table {surface, surfaces or labels, landmarks, landmark_weight, landmark_noise, noise, smooth}")
 
 OPTIMIZER = Table({
     "inner": Key(Choice("auto", "gauss-newton", "lbfgs", "lbfgs-forces"), "auto"),

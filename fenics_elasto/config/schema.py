@@ -371,6 +371,24 @@ class Named(Node):
         return {name: self.child(name, where.at(name)).check(item, where.at(name)) for name, item in value.items()}
 
 
+class LabelTargets(Named):
+    """``[target.labels]``: ``image = "..."`` (the deformed state's label map) and
+    ``GROUP = label or [labels]`` per matched facet group (its target: the boundary of
+    those labels' union)."""
+
+    def __init__(self):
+        super().__init__(Labels(), "GROUP = label or [labels], and image = \"...\"", minimum=2)
+
+    def child(self, name, where: Where, value=None) -> Node:
+        return String("a label-map image") if name == "image" else super().child(name, where, value)
+
+    def check(self, value, where):
+        out = super().check(value, where)
+        if "image" not in out:
+            where.at("image").fail('missing; expected the deformed state\'s label-map image = "..."')
+        return out
+
+
 class Elastic(Node):
     """A material constant: a number (fixed), or ``{estimate, initial (alias value),
     bounds}``; normalised to ``{value, estimate, bounds}`` (bounds None when fixed and

@@ -25,7 +25,9 @@ import numpy as np
 from fenics_elasto.util.errors import require
 from fenics_elasto.util.logs import log
 from fenics_elasto.geometry.surface import Surface
+from fenics_elasto.files.images import read_label_image
 from fenics_elasto.files.readers import read_landmarks, read_surface
+from fenics_elasto.geometry.label_surfaces import label_surface
 from fenics_elasto.geometry.smoothing import is_rough, noise, roughness, smoothed
 from fenics_elasto.geometry.targets import SurfaceTerm
 
@@ -196,9 +198,29 @@ def read_target(scene) -> TargetData:
     read = lambda name: target_surface(base / name, scene.gdim, spec["smooth"])  # noqa: E731
     if spec["surfaces"] is not None:  # the names first: a file of a group not matched is not read
         check_surface_groups(scene.matched, spec["surfaces"], f"{scene.path}: [target]")
-    return TargetData(surface=read(spec["surface"]) if spec["surface"] is not None else None,
-                      surfaces={g: read(f) for g, f in spec["surfaces"].items()} if spec["surfaces"] is not None else None,
+    surfaces = {g: read(f) for g, f in spec["surfaces"].items()} if spec["surfaces"] is not None else None
+    if spec.get("labels") is not None:
+        surfaces = label_map_targets(scene, spec["labels"])
+    return TargetData(surface=read(spec["surface"]) if spec["surface"] is not None else None, surfaces=surfaces,
                       landmarks=read_target_landmarks(scene), source=f"{scene.path}: [target]")
+
+
+def label_map_targets(scene, table: dict) -> dict[str, Surface]:
+    """``[target.labels]``: per matched group the boundary of its labels' union in the
+    deformed state's label map (SurfaceNets, smoothed; world coordinates as the image's
+    header gives them)."""
+    where = f"{scene.path}: [target.labels]"
+    groups = {g: labels for g, labels in table.items() if g != "image"}
+    missing, unknown = [g for g in scene.matched if g not in groups], [g for g in groups if g not in scene.matched]
+    require(not missing, f"{where}: no labels for matched group(s) {missing}")
+    require(not unknown, f"{where}: {unknown} not in boundary.matched")
+    image = read_label_image(scene.path.parent / table["image"], f"{where} image")
+    out = {}
+    for group, labels in groups.items():
+        absent = sorted(set(labels) - set(np.unique(image.labels).tolist()))
+        require(not absent, f"{where} {group}: label(s) {absent} not in {table['image']}")
+        out[group] = Surface(*label_surface(image.labels, image.affine, labels))
+    return out
 
 
 def read_target_landmarks(scene) -> tuple[np.ndarray, np.ndarray] | None:

@@ -154,12 +154,12 @@ BAD_PROBLEMS = {
                                     "simulate", "problem.toml: boundary.fixed:", ["clamp at least one group"]),
     "nothing to simulate": ({"boundary": {"displacement": DROP}}, (), "simulate", "problem.toml:", ["nothing to simulate"]),
     # target
-    "target a number": ({"target": 5}, (), "estimate", "problem.toml: target:", ["expected a table {surface or surfaces", "got 5"]),
+    "target a number": ({"target": 5}, (), "estimate", "problem.toml: target:", ["expected a table {surface, surfaces or labels", "got 5"]),
     "target.surface a number": ({"target": {"surface": 5}}, (), "estimate", "problem.toml: target.surface:", ["got 5"]),
     "surface and surfaces": ({"target": {"surfaces": {"outline": "o.vtp"}}}, (), "estimate", "problem.toml: [target]:",
                              ["surface or surfaces, not both"]),
     "target empty": ({"target": {"surface": DROP}}, (), "estimate", "problem.toml: [target]:",
-                     ["give surface or surfaces or landmarks"]),
+                     ["give surface or surfaces or labels or landmarks"]),
     "no target for estimate": ({"target": DROP}, (), "estimate", "problem.toml: [target]:", ["missing"]),
     "surfaces empty": ({"target": {"surface": DROP, "surfaces": {}}}, (), "estimate", "problem.toml: [target.surfaces]:",
                        ["got none"]),
@@ -460,7 +460,7 @@ def test_scene_spec_defaults(tmp_path):
 def test_target_forms():
     landmarks_only, _ = problem({"target": {"surface": DROP, "landmarks": "l.csv"}})
     assert landmarks_only["target"] == {"surface": None, "surfaces": None, "landmarks": "l.csv",
-                                        "landmark_weight": None, "landmark_noise": None, "noise": None, "smooth": "auto"}
+                                        "landmark_weight": None, "landmark_noise": None, "labels": None, "noise": None, "smooth": "auto"}
     per_group, _ = problem({"target": {"surface": DROP, "surfaces": {"outline": "o.vtp"}, "landmarks": "l.csv",
                                        "landmark_weight": 2, "noise": 0.05}})
     assert per_group["target"]["surfaces"] == {"outline": "o.vtp"} and per_group["target"]["landmark_weight"] == 2.0

@@ -5,6 +5,7 @@ world coordinates, conforming interfaces, the same scene from NIfTI and NRRD/Met
 target surfaces from a deformed label map, and every refusal as one line + exit 2."""
 
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -148,3 +149,21 @@ def test_bad_label_maps_are_one_line(tmp_path, capsys, case, words):
     assert err.count("\n") == 0 and err.startswith("error: "), err
     for word in words:
         assert word in err, (word, err)
+
+
+def test_target_from_a_label_map_of_the_deformed_state(kidney):
+    """[target.labels]: the deformed state's label map (the tumour grown by 1.1) is the
+    matched group's target -- its surface within a voxel of the grown ball, in world
+    coordinates; a label the image lacks and a group not matched are one line each."""
+    from fenics_elasto.inverse.misfit import read_target
+    from fenics_elasto.util.errors import UserError
+
+    lm.write_nifti(kidney.parent / "deformed.nii.gz", lm.label_map(scale=1.1))
+    target = {"labels": {"image": "deformed.nii.gz", "tumour_surface": 2}}
+    surface = read_target(load_scene(kidney, [("target", target)])).surfaces["tumour_surface"]
+    radius = np.linalg.norm(surface.points - lm.world_centre(), axis=1)
+    assert np.abs(radius - 1.1 * lm.RADIUS).max() < lm.SPACING.max()
+    for labels, words in (({"tumour_surface": 7}, "label(s) [7] not in deformed.nii.gz"),
+                          ({"tumour_surface": 2, "outer": [1, 2]}, "['outer'] not in boundary.matched")):
+        with pytest.raises(UserError, match=re.escape(words)):
+            read_target(load_scene(kidney, [("target", {"labels": {"image": "deformed.nii.gz", **labels}})]))
