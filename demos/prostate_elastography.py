@@ -29,7 +29,7 @@
 # K(E)\, u = P F ,
 # $$
 #
-# with $K(E)$ the stiffness matrix, affine in the Lamé coefficients of each region. With
+# with $K(E)$ the stiffness matrix, linear in the Lamé coefficients of each region. With
 # unknown forces only ratios of Young's moduli are identifiable, so the tissue's
 # $E = 10$ kPa is the reference and the prostate's $E$ is the one unknown material
 # constant. The misfit compares every node $x_l$ of the three organ surfaces, moved by
