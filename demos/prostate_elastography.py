@@ -90,6 +90,9 @@ from fenics_elasto.mesh.atlas import atlas_surfaces
 from fenics_elasto.mesh.builtin import ORGAN_SIZE, PROSTATE_SIZE
 
 argv = sys.argv[1:]
+unknown = [a for a in argv if a.startswith("--") and a not in ("--quick", "--out", "--organ-size")]
+if unknown and "ipykernel" not in sys.modules:  # run as a script: a mistyped option is an error, not ignored
+    sys.exit(f"prostate_elastography.py: unknown option {unknown[0]} (known: --quick, --out DIR, --organ-size X)")
 quick = "--quick" in argv
 out = Path(argv[argv.index("--out") + 1]) if "--out" in argv else Path("out/demo")
 detail = {"organ_size": float(argv[argv.index("--organ-size") + 1])} if "--organ-size" in argv else {}
