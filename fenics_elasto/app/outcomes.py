@@ -118,6 +118,9 @@ class Estimate(Solution):
         for label, value in self.values.items():
             sd, (low, high) = self.std[label], self.ci95[label]
             sure = f" ± {sd:.2g} (95 %: {low:.4g} to {high:.4g})" if np.isfinite(sd) else ""
+            parts = (self.record.get("uncertainty") or {}).get(label, {}).get("parts", {})
+            if sure and any(v > 0 for name, v in parts.items() if name != "noise"):
+                sure += "; parts of sigma: " + ", ".join(f"{name} {v:.2g}" for name, v in parts.items())
             lines.append(f"  {label} = {value:.5g}{sure}")
         distance = self.record.get("surface_distance") or {}
         if "rms" in distance:
