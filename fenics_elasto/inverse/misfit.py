@@ -197,7 +197,7 @@ def read_target(scene) -> TargetData:
     base = scene.path.parent
     read = lambda name: target_surface(base / name, scene.gdim, spec["smooth"])  # noqa: E731
     if spec["surfaces"] is not None:  # the names first: a file of a group not matched is not read
-        check_surface_groups(scene.matched, spec["surfaces"], f"{scene.path}: [target]")
+        check_surface_groups(scene.matched, spec["surfaces"], f"{scene.path}: [target].surfaces")
     surfaces = {g: read(f) for g, f in spec["surfaces"].items()} if spec["surfaces"] is not None else None
     if spec.get("labels") is not None:
         surfaces = label_map_targets(scene, spec["labels"])
@@ -211,13 +211,12 @@ def label_map_targets(scene, table: dict) -> dict[str, Surface]:
     header gives them)."""
     where = f"{scene.path}: [target.labels]"
     groups = {g: labels for g, labels in table.items() if g != "image"}
-    missing, unknown = [g for g in scene.matched if g not in groups], [g for g in groups if g not in scene.matched]
-    require(not missing, f"{where}: no labels for matched group(s) {missing}")
-    require(not unknown, f"{where}: {unknown} not in boundary.matched")
+    check_surface_groups(scene.matched, groups, where, noun="labels")
     image = read_label_image(scene.path.parent / table["image"], f"{where} image")
+    present = set(np.unique(image.labels).tolist())
     out = {}
     for group, labels in groups.items():
-        absent = sorted(set(labels) - set(np.unique(image.labels).tolist()))
+        absent = sorted(set(labels) - present)
         require(not absent, f"{where} {group}: label(s) {absent} not in {table['image']}")
         out[group] = Surface(*label_surface(image.labels, image.affine, labels))
     return out
@@ -276,12 +275,13 @@ def smooth_if_rough(surface: Surface, name: str, smooth: str) -> Surface:
     return surface
 
 
-def check_surface_groups(matched: list[str], surfaces, where: str) -> None:
-    """One target surface per matched group, and none for another group."""
-    missing = [g for g in matched if g not in surfaces]
-    require(not missing, f"{where}.surfaces: no surface for matched group(s) {missing}")
-    unknown = [g for g in surfaces if g not in matched]
-    require(not unknown, f"{where}.surfaces: {unknown} not in boundary.matched")
+def check_surface_groups(matched: list[str], given, where: str, noun: str = "surface") -> None:
+    """One target (a surface, or its labels) per matched group, and none for another group;
+    ``where``: the table that gives them."""
+    missing = [g for g in matched if g not in given]
+    require(not missing, f"{where}: no {noun} for matched group(s) {missing}")
+    unknown = [g for g in given if g not in matched]
+    require(not unknown, f"{where}: {unknown} not in boundary.matched")
 
 
 def build_misfit(scene, node_groups: np.ndarray, target: TargetData) -> Misfit:
@@ -298,7 +298,7 @@ def build_misfit(scene, node_groups: np.ndarray, target: TargetData) -> Misfit:
     if target.surface is not None:
         blocks.append((len(node_groups), SurfaceTerm([target.surface], np.zeros(len(node_groups), int)), 1.0))
     elif target.surfaces is not None:
-        check_surface_groups(scene.matched, target.surfaces, where)
+        check_surface_groups(scene.matched, target.surfaces, f"{where}.surfaces")
         blocks.append((len(node_groups), SurfaceTerm([target.surfaces[g] for g in scene.matched], node_groups), 1.0))
     else:  # landmarks alone: the matched nodes observe nothing
         blocks.append((len(node_groups), Unobserved(), 0.0))

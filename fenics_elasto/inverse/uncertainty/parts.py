@@ -17,8 +17,7 @@ from fenics_elasto.inverse.uncertainty.mesh_error import mesh_shift
 from fenics_elasto.inverse.uncertainty.posterior import Posterior
 
 LEVERS = {"mesh": "a finer source mesh at the organs (about 4x smaller per halving of the element size, P2)",
-          "bases": "bases with more examples and a higher rank (train --synthetic N --rank R)",
-          "noise": "more data: landmarks inside the region, or a less noisy target"}
+          "bases": "bases with more examples and a higher rank (train --synthetic N --rank R)"}
 
 
 def add_model_error(problem, post: Posterior, theta, evaluation, lin, fit: dict | None) -> None:

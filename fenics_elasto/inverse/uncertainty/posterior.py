@@ -142,13 +142,12 @@ class Posterior:
 
     def std(self) -> np.ndarray:
         """Each constant's std in its own units (E: delta method, E sigma_logE)."""
-        value = np.where(self.is_E, np.exp(self.s), self.s)
-        return np.where(self.is_E, value * self.std_s, self.std_s)
+        return self.in_units(self.std_s)
 
-    def in_units(self, stds: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-        """Stds in s -> in each constant's own units (E: delta method)."""
+    def in_units(self, sd_s: np.ndarray) -> np.ndarray:
+        """A std in s -> in each constant's own units (E: delta method, E sigma_logE)."""
         value = np.where(self.is_E, np.exp(self.s), self.s)
-        return {key: np.where(self.is_E, value * sd, sd) for key, sd in stds.items()}
+        return np.where(self.is_E, value * sd_s, sd_s)
 
     def correlation(self) -> np.ndarray:
         d = np.where(self.laplace_std_s > 0, self.laplace_std_s, 1.0)
@@ -190,7 +189,7 @@ def posterior_record(post: Posterior) -> dict:
     """result.json's ``uncertainty``: per constant its std, interval and the parts of its
     std; how the noise was found; what widened or could move the answer."""
     labelled = lambda values: {label: float(v) for label, v in zip(post.labels, values)}  # noqa: E731
-    parts = post.in_units(post.parts_s())
+    parts = {part: post.in_units(sd) for part, sd in post.parts_s().items()}
     out: dict[str, object] = {label: {"std": float(sd), "ci95": [float(lo), float(hi)],
                                       "parts": {part: float(v[i]) for part, v in parts.items()}}
                               for i, (label, sd, (lo, hi)) in enumerate(zip(post.labels, post.std(), post.interval()))}
@@ -202,8 +201,8 @@ def posterior_record(post: Posterior) -> dict:
     out["interval"] = post.method
     out["dof"] = post.dof
     if post.patch_covariance is not None:
-        stds = post.in_units({"noise_only_std": post.noise_std_s, "patch_std": post.patch_std_s})
-        out.update({key: labelled(sd) for key, sd in stds.items()})
+        out["noise_only_std"] = labelled(post.in_units(post.noise_std_s))
+        out["patch_std"] = labelled(post.in_units(post.patch_std_s))
         out["widened"] = labelled(post.widening)
     if post.offset is not None:
         delta, ds = post.offset
