@@ -16,6 +16,7 @@ import numpy as np
 
 from fenics_elasto.app.outcomes import Estimate, Simulation
 from fenics_elasto.app.target import Target
+from fenics_elasto.config.problem import map_files
 from fenics_elasto.inverse.reduction.bases import Bases
 from fenics_elasto.model.scene import Scene, reconfigure
 from fenics_elasto.util.errors import UserError, require
@@ -27,8 +28,6 @@ if TYPE_CHECKING:
     from fenics_elasto.inverse.objective import InverseProblem
 
 PathLike = str | os.PathLike[str]
-PATH_KEYS = {("mesh",), ("target", "surface"), ("target", "landmarks"), ("target", "labels", "image"),
-             ("reduction", "bases")}  # file names in a problem
 
 
 def build_scene(name: str, out: PathLike, size: float | None = None, seed: int | None = None,
@@ -56,18 +55,6 @@ def build_scene(name: str, out: PathLike, size: float | None = None, seed: int |
         return on_root(MPI.COMM_WORLD, work)
 
 
-def _absolute(keys: tuple[str, ...], value: Any) -> Any:
-    """An override's value with the file names in it made absolute (from the working
-    directory); a table is walked."""
-    if isinstance(value, os.PathLike):
-        value = os.fspath(value)
-    if isinstance(value, Mapping):
-        return {k: _absolute(keys + (str(k),), v) for k, v in value.items()}
-    if isinstance(value, str) and (keys in PATH_KEYS or keys[:2] == ("target", "surfaces") and len(keys) == 3):
-        return str(Path(value).resolve())
-    return value
-
-
 def _override_items(overrides: Mapping[str, Any] | None) -> list[tuple[str, Any]]:
     if overrides is None:
         return []
@@ -76,7 +63,8 @@ def _override_items(overrides: Mapping[str, Any] | None) -> list[tuple[str, Any]
     items = []
     for key, value in overrides.items():
         require(isinstance(key, str) and all(key.split(".")), f"overrides: {key!r} is not a dotted key like 'optimizer.scan'")
-        items.append((key, _absolute(tuple(key.split(".")), value)))
+        # file names in overrides are the caller's, relative to the working directory
+        items.append((key, map_files(tuple(key.split(".")), value, lambda name: str(Path(name).resolve()))))
     return items
 
 

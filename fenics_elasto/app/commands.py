@@ -13,6 +13,7 @@ from fenics_elasto.util.errors import on_root, require
 from fenics_elasto.util.logs import log
 from fenics_elasto.files.outputs import prepare_file, prepare_folder
 from fenics_elasto.app import api
+from fenics_elasto.config.problem import map_files
 
 
 def run_mesh(name: str, out: Path, size=None, seed=None, atlas_mesh: Path | None = None, **detail) -> Path:
@@ -103,17 +104,8 @@ def absolute_paths(scene, table: str) -> dict:
     """A table of the scene's config with its file names absolute (they are relative to
     the problem file, which a derived scene elsewhere does not share)."""
     base = scene.path.parent.resolve()
-
-    def fix(key, value):
-        if key in ("surface", "landmarks", "bases") and isinstance(value, str):
-            return str(base / value)
-        if key == "surfaces" and isinstance(value, dict):
-            return {g: str(base / f) for g, f in value.items()}
-        if key == "labels" and isinstance(value, dict):
-            return {**value, "image": str(base / value["image"])}
-        return value
-
-    return {k: fix(k, v) for k, v in (scene.config[table] or {}).items() if v is not None}
+    return {k: map_files((table, k), v, lambda name: str(base / name))
+            for k, v in (scene.config[table] or {}).items() if v is not None}
 
 
 def write_estimate(folder, problem, result) -> None:

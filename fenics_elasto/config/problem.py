@@ -7,6 +7,8 @@ is known.
 
 from __future__ import annotations
 
+import os
+from collections.abc import Callable, Mapping
 from pathlib import Path
 
 from fenics_elasto.config.schema import (REQUIRED, Boolean, Choice, Elastic, Integer, Key, LabelTargets, Matrix, Named, Names,
@@ -124,6 +126,26 @@ PROBLEM = Table({
 })
 
 # What each command needs in [boundary], and why.
+# The keys of problem.toml whose values are file names (relative to the problem file's folder)
+FILE_KEYS = {("mesh",), ("target", "surface"), ("target", "landmarks"), ("target", "labels", "image"),
+             ("reduction", "bases")}
+
+
+def is_file_key(keys: tuple[str, ...]) -> bool:
+    """Does the value at these dotted keys name a file? (``target.surfaces.GROUP`` too.)"""
+    return keys in FILE_KEYS or (keys[:2] == ("target", "surfaces") and len(keys) == 3)
+
+
+def map_files(keys: tuple[str, ...], value, change: Callable[[str], str]):
+    """``value`` (found at ``keys`` of a problem table) with ``change`` applied to every
+    file name in it; tables are walked, path-like values read as strings."""
+    if isinstance(value, os.PathLike):
+        value = os.fspath(value)
+    if isinstance(value, Mapping):
+        return {k: map_files(keys + (str(k),), v, change) for k, v in value.items()}
+    return change(value) if isinstance(value, str) and is_file_key(keys) else value
+
+
 NEEDED_GROUPS = {
     "estimate": {"fixed": "a clamped group (else the body moves freely)",
                  "loaded": "a group carrying the unknown forces",

@@ -50,7 +50,7 @@ from mpi4py import MPI
 from scipy.spatial import cKDTree
 
 from fenics_elasto.config.toml import read_toml, toml_text
-from fenics_elasto.config.problem import validate_problem
+from fenics_elasto.config.problem import map_files, validate_problem
 from fenics_elasto.model.dofs import DofLayout
 from fenics_elasto.util.errors import UserError, on_root, require
 from fenics_elasto.mesh.gmsh_models import fresh_gmsh_model, node_positions, open_msh, physical_facets, save
@@ -61,7 +61,6 @@ from fenics_elasto.geometry.meshes import unique_rows
 FAMILY = {1: "Line", 2: "Triangle", 3: "Tetrahedron"}
 POINT = 15  # gmsh's 1-node point element: kept as it is
 SIMPLICES = (POINT, 1, 8, 2, 9, 4, 11)  # gmsh types: points, lines, triangles, tetrahedra of order 1 and 2
-PROBLEM_FILES = (("target", "surface"), ("target", "landmarks"), ("reduction", "bases"))  # + target.surfaces.*
 
 
 # --------------------------------------------------------------------------- the split of one element type
@@ -332,13 +331,7 @@ def refined_problem(raw: dict, source_dir: Path, out_dir: Path, mesh_name: str) 
         path = Path(name)
         return name if path.is_absolute() else os.path.relpath(source_dir / path, out_dir)
 
-    for table, key in PROBLEM_FILES:
-        if isinstance(raw.get(table), dict) and isinstance(raw[table].get(key), str):
-            raw[table][key] = moved(raw[table][key])
-    surfaces = (raw.get("target") or {}).get("surfaces")
-    if isinstance(surfaces, dict):
-        raw["target"]["surfaces"] = {g: moved(f) if isinstance(f, str) else f for g, f in surfaces.items()}
-    return raw
+    return {key: value if key == "mesh" else map_files((key,), value, moved) for key, value in raw.items()}
 
 
 # --------------------------------------------------------------------------- fields on the refined scene
