@@ -676,6 +676,31 @@ def inclusion(out, ratio: float, top=INCLUSION_TOP, center=(0.0, 0.0), radius: f
     return cached(out, "inclusion", params, make)
 
 
+@lru_cache(maxsize=4)
+def inclusion_solution(ratio: float, top=INCLUSION_TOP, center=(0.0, 0.0), radius: float = 1.2, nu: float = 0.3,
+                       E: float = 10.0, size: float = 0.1) -> tuple[Elasticity, np.ndarray, dict]:
+    """(model, u, materials) of the inclusion case's scikit-fem solution (as ``inclusion``)."""
+    model = inclusion_model(tuple(center), radius, size)
+    materials = {"matrix": (E, nu), "inclusion": (ratio * E, nu)}
+    u = model.solve(materials, {"bottom": constant_motion((0.0, 0.0)), "top": inclusion_top_motion(tuple(top))})
+    return model, u, materials
+
+
+def inclusion_displacement(points: np.ndarray, ratio: float, top=INCLUSION_TOP, **kw) -> np.ndarray:
+    """The independent solution's displacement at ``points`` (n, 2) inside the block."""
+    model, u, _ = inclusion_solution(ratio, tuple(top), **kw)
+    return evaluate(model.basis, u, points)
+
+
+def inclusion_force(ratio: float, top=INCLUSION_TOP, group: str = "top", **kw) -> np.ndarray:
+    """The total force the independent solution applies to the body through ``group``:
+    the sum of the nodal reactions K u over the group's DOFs, per component."""
+    model, u, materials = inclusion_solution(ratio, tuple(top), **kw)
+    reactions = model.stiffness(materials) @ u
+    view = model.basis.get_dofs(model.fe.facets[group])
+    return np.array([reactions[view.all(f"u^{c + 1}")].sum() for c in range(2)])
+
+
 # --------------------------------------------------------------------------- case 3: the prostate phantom
 
 HALF = (6.0, 5.0, 5.0)  # the phantom's box 12 x 10 x 10 cm, centred at the origin (as in fenics_elasto.meshing)

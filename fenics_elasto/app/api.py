@@ -25,6 +25,7 @@ from fenics_elasto.util.logs import log
 if TYPE_CHECKING:
     import pyvista as pv
 
+    from fenics_elasto.inverse.misfit import FieldTerm
     from fenics_elasto.inverse.objective import InverseProblem
 
 PathLike = str | os.PathLike[str]
@@ -121,10 +122,12 @@ def inverse_problem(scene: Scene, target: Target | None = None,
     scene = for_command(scene, "estimate", [] if target is None else [("target", target.spec())])
     problem = InverseProblem(scene, target=None if target is None else target.data(scene.gdim))
     basis, held_out = _bases_of(problem, bases)
-    landmarks = len(problem.misfit.landmark_rows())
+    field = len(problem.misfit.rows_of(FieldTerm))
+    landmarks = len(problem.misfit.landmark_rows()) - field
     log.info(f"estimate {', '.join(problem.params.labels)}: {problem.model.dofs.num_dofs} dofs, {problem.force_dofs} "
              "force dofs" + (f" reduced to rank {basis.shape[1]}" if basis is not None else "")
-             + f", {problem.observation.node_count} matched nodes" + (f", {landmarks} landmarks" if landmarks else ""))
+             + f", {problem.observation.node_count} matched nodes" + (f", {landmarks} landmarks" if landmarks else "")
+             + (f", {field} displacement-field cells" if field else ""))
     return problem, basis, held_out
 
 

@@ -17,7 +17,10 @@ import numpy as np
 
 from fenics_elasto.files.readers import (check_landmark_dim, landmark_arrays, read_landmarks, surface_from_arrays,
                                          surface_of)
+from fenics_elasto.files.displacements import read_displacement
+from fenics_elasto.files.images import is_image
 from fenics_elasto.geometry.surface import Surface
+from fenics_elasto.inverse.displacement_field import DisplacementField
 from fenics_elasto.inverse.misfit import TargetData, smooth_if_rough, target_surface
 from fenics_elasto.util.errors import require
 
@@ -58,14 +61,20 @@ class Target:
     weight beside the surfaces by maximum likelihood), ``landmark_weight``: a landmark
     row's weight instead (default 1),
     ``smooth``: "auto" smooths rough 3D surfaces before matching, "off" keeps them.
-    Paths are relative to the working directory.
+    ``displacement``: a displacement field observed inside the body -- a file (points
+    with one vector array, or a vector image) or ``(points, vectors)`` arrays --
+    with its noise std ``displacement_noise`` and correlation length
+    ``displacement_correlation`` (one observation per cell of that size; default the
+    mesh's cell size). Paths are relative to the working directory.
     """
 
     def __init__(self, surfaces: SurfaceLike | Mapping[str, SurfaceLike] | None = None,
                  landmarks: LandmarksLike | None = None, noise: float | None = None,
                  landmark_weight: float | None = None, smooth: str = "auto",
-                 landmark_noise: float | None = None) -> None:
-        require(surfaces is not None or landmarks is not None, "Target: give surfaces and/or landmarks")
+                 landmark_noise: float | None = None, displacement: LandmarksLike | None = None,
+                 displacement_noise: float | None = None, displacement_correlation: float | None = None) -> None:
+        require(surfaces is not None or landmarks is not None or displacement is not None,
+                "Target: give surfaces, landmarks and/or a displacement field")
         if isinstance(surfaces, Mapping):
             require(len(surfaces) > 0, "Target.surfaces: an empty mapping; give {group: surface, ...}")
             self.surfaces: object = {str(g): _check_surface(s, f"Target.surfaces[{g!r}]") for g, s in surfaces.items()}
@@ -77,12 +86,20 @@ class Target:
                     f"Target.landmarks: expected a CSV file or (source_points, observed_points), got {type(landmarks).__name__}")
             self.landmarks = (Path(landmarks).resolve() if _is_path(landmarks)  # type: ignore[arg-type]
                               else landmark_arrays(*landmarks, name="Target.landmarks"))  # type: ignore[misc]
-        weights = {"noise": noise, "landmark_weight": landmark_weight, "landmark_noise": landmark_noise}
+        self.displacement: Path | tuple[np.ndarray, np.ndarray] | None = None
+        if displacement is not None:
+            require(_is_path(displacement) or _is_pair(displacement),
+                    f"Target.displacement: expected a file or (points, vectors), got {type(displacement).__name__}")
+            self.displacement = (Path(displacement).resolve() if _is_path(displacement)  # type: ignore[arg-type]
+                                 else landmark_arrays(*displacement, name="Target.displacement"))  # type: ignore[misc]
+        weights = {"noise": noise, "landmark_weight": landmark_weight, "landmark_noise": landmark_noise,
+                   "displacement_noise": displacement_noise, "displacement_correlation": displacement_correlation}
         for key, value in weights.items():
             require(value is None or (isinstance(value, (int, float)) and np.isfinite(value) and value > 0),
                     f"Target.{key}: expected a number > 0 or None, got {value!r}")
         require(smooth in ("auto", "off"), f"Target.smooth: expected \"auto\" or \"off\", got {smooth!r}")
         self.noise, self.landmark_weight, self.landmark_noise, self.smooth = noise, landmark_weight, landmark_noise, smooth
+        self.weights = weights
 
     def spec(self) -> dict:
         """The problem file's [target] table this target stands for (files by their
@@ -95,8 +112,9 @@ class Target:
             out["surface"] = label(self.surfaces)
         if self.landmarks is not None:
             out["landmarks"] = label(self.landmarks)
-        weights = {"noise": self.noise, "landmark_weight": self.landmark_weight, "landmark_noise": self.landmark_noise}
-        out.update({k: v for k, v in weights.items() if v is not None})
+        if self.displacement is not None:
+            out["displacement"] = label(self.displacement)
+        out.update({k: v for k, v in self.weights.items() if v is not None})
         return out
 
     def data(self, gdim: int) -> TargetData:
@@ -112,6 +130,12 @@ class Target:
         elif self.landmarks is not None:
             check_landmark_dim(self.landmarks, gdim, "Target.landmarks")
             data.landmarks = self.landmarks
+        if isinstance(self.displacement, Path):
+            data.displacement = DisplacementField(*read_displacement(self.displacement, gdim), str(self.displacement),
+                                                  dense=is_image(self.displacement))
+        elif self.displacement is not None:
+            check_landmark_dim(self.displacement, gdim, "Target.displacement")
+            data.displacement = DisplacementField(*self.displacement, source="Target.displacement")
         return data
 
     def _surface(self, entry: object, gdim: int, name: str) -> Surface:

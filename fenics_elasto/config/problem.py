@@ -86,9 +86,14 @@ TARGET = Table({
     "landmark_noise": Key(Number(gt=0)),
     "noise": Key(Number(gt=0)),
     "labels": Key(LabelTargets()),  # the deformed state's label map: GROUP = label(s), image = "..."
+    "displacement": Key(String("a displacement field file")),  # points with vectors, or a vector image
+    "displacement_noise": Key(Number(gt=0)),
+    "displacement_correlation": Key(Number(gt=0)),  # the field's correlation length (displacement_field.py)
     "smooth": Key(Choice("auto", "off"), "auto"),
-}, exclusive=[("surface", "surfaces", "labels")], one_of=("surface", "surfaces", "labels", "landmarks"),
-   expected="a table {surface, surfaces or labels, landmarks, landmark_weight, landmark_noise, noise, smooth}")
+}, exclusive=[("surface", "surfaces", "labels")],
+   one_of=("surface", "surfaces", "labels", "landmarks", "displacement"),
+   expected="a table {surface, surfaces or labels, landmarks, displacement, landmark_weight, landmark_noise, "
+            "displacement_noise, displacement_correlation, noise, smooth}")
 
 OPTIMIZER = Table({
     "inner": Key(Choice("auto", "gauss-newton", "lbfgs", "lbfgs-forces"), "auto"),
@@ -128,6 +133,7 @@ PROBLEM = Table({
 # What each command needs in [boundary], and why.
 # The keys of problem.toml whose values are file names (relative to the problem file's folder)
 FILE_KEYS = {("mesh",), ("target", "surface"), ("target", "landmarks"), ("target", "labels", "image"),
+             ("target", "displacement"),
              ("reduction", "bases")}
 
 

@@ -54,6 +54,11 @@ def _suffix(path: Path) -> str:
     return ".nii.gz" if name.endswith(".nii.gz") else path.suffix.lower()
 
 
+def is_image(path) -> bool:
+    """Is ``path`` named as an image this module reads (by its suffix)?"""
+    return _suffix(Path(path)) in NIFTI + ITK
+
+
 def read_label_image(path, label: str) -> LabelImage:
     """The label map in ``path`` (NIfTI, NRRD or MetaImage), checked; ``label`` names it
     in error lines (e.g. 'labels.image (seg.nii.gz)')."""

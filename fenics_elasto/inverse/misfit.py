@@ -25,7 +25,9 @@ import numpy as np
 from fenics_elasto.util.errors import require
 from fenics_elasto.util.logs import log
 from fenics_elasto.geometry.surface import Surface
-from fenics_elasto.files.images import read_label_image
+from fenics_elasto.files.displacements import read_displacement
+from fenics_elasto.files.images import is_image, read_label_image
+from fenics_elasto.inverse.displacement_field import DisplacementField
 from fenics_elasto.files.readers import read_landmarks, read_surface
 from fenics_elasto.geometry.label_surfaces import label_surface
 from fenics_elasto.geometry.smoothing import is_rough, noise, roughness, smoothed
@@ -43,6 +45,10 @@ class PointTerm:
 
     def curvature_directions(self, y: np.ndarray) -> np.ndarray:
         return np.broadcast_to(np.eye(y.shape[1]), y.shape + (y.shape[1],)).copy()
+
+
+class FieldTerm(PointTerm):
+    """Rows of a displacement field's samples: each observed where it moved to."""
 
 
 class Unobserved:
@@ -155,19 +161,24 @@ class Misfit:
                 out[rows] = -term.outward(y[rows])
         return out if out.any() else None
 
-    def landmark_rows(self) -> np.ndarray:
-        """Indices of the rows with a fixed target point (landmarks)."""
-        rows = [np.arange(s.start, s.stop) for s, t in zip(self.slices, self.terms) if isinstance(t, PointTerm)]
+    def rows_of(self, kind: type) -> np.ndarray:
+        """Indices of the rows whose term is a ``kind``."""
+        rows = [np.arange(s.start, s.stop) for s, t in zip(self.slices, self.terms) if isinstance(t, kind)]
         return np.concatenate(rows) if rows else np.zeros(0, int)
 
+    def landmark_rows(self) -> np.ndarray:
+        """Indices of the rows with a fixed target point (landmarks, a field's samples)."""
+        return self.rows_of(PointTerm)
+
     def surface_rows(self) -> np.ndarray:
-        rows = [np.arange(s.start, s.stop) for s, t in zip(self.slices, self.terms) if isinstance(t, SurfaceTerm)]
-        return np.concatenate(rows) if rows else np.zeros(0, int)
+        return self.rows_of(SurfaceTerm)
 
     def distances(self, residual: np.ndarray) -> dict:
         """rms / max / mean distance of the surface rows and of the landmark rows."""
         out = {}
-        for name, rows in (("surface", self.surface_rows()), ("landmarks", self.landmark_rows())):
+        field = self.rows_of(FieldTerm)
+        landmarks = np.setdiff1d(self.landmark_rows(), field)
+        for name, rows in (("surface", self.surface_rows()), ("landmarks", landmarks), ("field", field)):
             if len(rows):
                 d = np.linalg.norm(residual[rows], axis=1)
                 out[name] = {"rms": float(np.sqrt(np.mean(d**2))), "max": float(d.max()), "mean": float(d.mean())}
@@ -186,7 +197,15 @@ class TargetData:
     surface: Surface | None = None
     surfaces: dict[str, Surface] | None = None
     landmarks: tuple[np.ndarray, np.ndarray] | None = None
+    displacement: DisplacementField | None = None
     source: str = "target"
+
+    def observed_points(self) -> np.ndarray | None:
+        """The points observed inside the body: the landmarks', then the field's (sampled:
+        displacement_field.observed_samples)."""
+        parts = [p for p in (None if self.landmarks is None else self.landmarks[0],
+                             None if self.displacement is None else self.displacement.points) if p is not None]
+        return np.concatenate(parts) if parts else None
 
 
 def read_target(scene) -> TargetData:
@@ -202,7 +221,17 @@ def read_target(scene) -> TargetData:
     if spec.get("labels") is not None:
         surfaces = label_map_targets(scene, spec["labels"])
     return TargetData(surface=read(spec["surface"]) if spec["surface"] is not None else None, surfaces=surfaces,
-                      landmarks=read_target_landmarks(scene), source=f"{scene.path}: [target]")
+                      landmarks=read_target_landmarks(scene), displacement=read_target_field(scene),
+                      source=f"{scene.path}: [target]")
+
+
+def read_target_field(scene) -> DisplacementField | None:
+    """[target] displacement: the field's samples as read (not yet sampled), or None."""
+    spec = scene.config["target"] or {}
+    if spec.get("displacement") is None:
+        return None
+    path = scene.path.parent / spec["displacement"]
+    return DisplacementField(*read_displacement(path, scene.gdim), source=str(path), dense=is_image(path))
 
 
 def label_map_targets(scene, table: dict) -> dict[str, Surface]:
@@ -240,14 +269,26 @@ def landmark_weight(spec: dict, surfaces: list[Surface]) -> float:
     point."""
     if spec.get("landmark_weight") is not None:
         return float(spec["landmark_weight"])
-    if spec.get("landmark_noise") is None:
+    return _noise_weight(spec, surfaces, spec.get("landmark_noise"))
+
+
+def field_weight(spec: dict, surfaces: list[Surface]) -> float:
+    """The weight of a displacement field's sample (one per correlation cell) beside a
+    surface row's 1: (sigma_reference / displacement_noise)^2 by maximum likelihood, the
+    reference being the surfaces' noise (as for landmarks), else the landmarks' noise;
+    1 without ``displacement_noise``."""
+    return _noise_weight(spec, surfaces, spec.get("displacement_noise"), spec.get("landmark_noise"))
+
+
+def _noise_weight(spec: dict, surfaces: list[Surface], own: float | None, fallback: float | None = None) -> float:
+    if own is None:
         return 1.0
     sigma = spec.get("noise")
     if sigma is None and surfaces:
         sigma = max(max(noise(s) for s in surfaces), SURFACE_FLOOR * float(np.mean([s.mean_edge for s in surfaces])))
-    if sigma is None:  # landmarks alone: their own noise sets the scale
-        return 1.0
-    return float((sigma / spec["landmark_noise"]) ** 2)
+    if sigma is None:  # no surface: the other point data's noise, else the rows' own scale
+        sigma = fallback if fallback is not None else own
+    return float((sigma / own) ** 2)
 
 
 SURFACE_FLOOR = 0.1  # landmark_weight: the least noise a target surface is credited with, in its mean edges
@@ -292,8 +333,8 @@ def build_misfit(scene, node_groups: np.ndarray, target: TargetData) -> Misfit:
     """
     spec = scene.config["target"] or {"landmark_weight": None}
     where = target.source
-    require(target.surface is not None or target.surfaces is not None or target.landmarks is not None,
-            f"{where}: missing; give surface, surfaces and/or landmarks")
+    require(any(x is not None for x in (target.surface, target.surfaces, target.landmarks, target.displacement)),
+            f"{where}: missing; give surface, surfaces, landmarks and/or displacement")
     blocks: list[tuple[int, Term, float]] = []
     if target.surface is not None:
         blocks.append((len(node_groups), SurfaceTerm([target.surface], np.zeros(len(node_groups), int)), 1.0))
@@ -306,4 +347,8 @@ def build_misfit(scene, node_groups: np.ndarray, target: TargetData) -> Misfit:
         surfaces = blocks[0][1].surfaces if isinstance(blocks[0][1], SurfaceTerm) else []
         observed = target.landmarks[1]
         blocks.append((len(observed), PointTerm(observed), landmark_weight(spec, surfaces)))
+    if target.displacement is not None:
+        surfaces = blocks[0][1].surfaces if isinstance(blocks[0][1], SurfaceTerm) else []
+        field = target.displacement
+        blocks.append((len(field.points), FieldTerm(field.points + field.vectors), field_weight(spec, surfaces)))
     return Misfit(blocks)

@@ -11,7 +11,7 @@ theta are the estimated constants in the order of ``Scene.estimated()``.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Literal
 from functools import cached_property
 
@@ -20,6 +20,7 @@ import numpy as np
 from fenics_elasto.model.elasticity import ElasticModel
 from fenics_elasto.util.errors import require
 from fenics_elasto.model.forward import BoundaryForward
+from fenics_elasto.inverse.displacement_field import observed_samples
 from fenics_elasto.inverse.misfit import Misfit, TargetData, build_misfit, read_target
 from fenics_elasto.model.observation import Observation
 from fenics_elasto.model.scene import Scene
@@ -50,8 +51,11 @@ class InverseProblem:
         self.params = self.forward.params
         self.gdim = scene.gdim
         data = read_target(scene) if target is None else target
-        landmarks = data.landmarks if isinstance(data, TargetData) else None
-        self.observation = Observation(self.model, scene, None if landmarks is None else landmarks[0])
+        if isinstance(data, TargetData) and data.displacement is not None:
+            correlation = (scene.config["target"] or {}).get("displacement_correlation")
+            data = replace(data, displacement=observed_samples(data.displacement, self.model.dofs.V.mesh, correlation))
+        points = data.observed_points() if isinstance(data, TargetData) else None
+        self.observation = Observation(self.model, scene, points)
         self._misfit = build_misfit(scene, self.node_groups(), data) if isinstance(data, TargetData) else data or None
 
     @property

@@ -105,8 +105,7 @@ def record(estimator: Estimator, theta, best: InnerResult, phi_undeformed, warni
         "estimated": list(problem.params.labels),
         "objective": {"undeformed": phi_undeformed, "initial": initial, "final": best.evaluation.phi,
                       "prior": best.prior},
-        "surface_distance": problem.distances(best.evaluation.residual).get(
-            "surface", problem.distances(best.evaluation.residual).get("landmarks")),
+        "surface_distance": next(iter(problem.distances(best.evaluation.residual).values())),  # the first kind of data
         "distances": problem.distances(best.evaluation.residual),
         "iterations": {"outer": estimator.outer_iterations, "inner": profile.inner_iterations,
                        "evaluations": len(profile.solved),

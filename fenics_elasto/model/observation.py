@@ -47,6 +47,27 @@ def elementwise_min(comm, values: np.ndarray) -> np.ndarray:
     return out
 
 
+def closest_cells(mesh, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(cell, distance) of each point's closest owned cell on this rank (-1, inf: none)."""
+    tdim, gdim = mesh.topology.dim, mesh.geometry.dim
+    xyz = np.zeros((len(points), 3))
+    xyz[:, :gdim] = points
+    owned = np.arange(mesh.topology.index_map(tdim).size_local, dtype=np.int32)
+    distance = np.full(len(points), np.inf)
+    if len(owned) == 0 or len(points) == 0:
+        return np.full(len(points), -1, np.int32), distance
+    tree = geo.bb_tree(mesh, tdim, entities=owned)
+    cells = geo.compute_closest_entity(tree, geo.create_midpoint_tree(mesh, tdim, owned), mesh, xyz)
+    found = cells >= 0
+    distance[found] = np.sqrt(geo.squared_distance(mesh, tdim, cells[found], xyz[found]))
+    return cells, distance
+
+
+def distances_to_body(mesh, points: np.ndarray) -> np.ndarray:
+    """Each point's distance to the body (0 inside), on every rank."""
+    return elementwise_min(mesh.comm, closest_cells(mesh, points)[1])
+
+
 class PointProbe:
     """u at fixed points anywhere in the mesh (each point evaluated on one rank).
 
@@ -60,7 +81,7 @@ class PointProbe:
         self.V, self.comm = V, mesh.comm
         self.gdim = mesh.geometry.dim
         self.count = len(points)
-        cells, distance = self._closest_cells(mesh, points)
+        cells, distance = closest_cells(mesh, points)
         best = elementwise_min(self.comm, distance)
         require(np.all(best <= tolerance), f"{int(np.sum(best > tolerance))} point(s) lie outside the body "
                 f"(worst {best.max():.3g} from it, tolerance {tolerance:.3g}): the first is "
@@ -85,20 +106,6 @@ class PointProbe:
         gap, node = cKDTree(owned).query(points)
         scale = max(1.0, float(np.abs(owned).max()))
         return node.astype(np.int32), gap <= 1e-10 * scale
-
-    def _closest_cells(self, mesh, points):
-        tdim = mesh.topology.dim
-        xyz = np.zeros((len(points), 3))
-        xyz[:, : self.gdim] = points
-        owned = np.arange(mesh.topology.index_map(tdim).size_local, dtype=np.int32)
-        distance = np.full(len(points), np.inf)
-        if len(owned) == 0 or len(points) == 0:
-            return np.full(len(points), -1, np.int32), distance
-        tree = geo.bb_tree(mesh, tdim, entities=owned)
-        cells = geo.compute_closest_entity(tree, geo.create_midpoint_tree(mesh, tdim, owned), mesh, xyz)
-        found = cells >= 0
-        distance[found] = np.sqrt(geo.squared_distance(mesh, tdim, cells[found], xyz[found]))
-        return cells, distance
 
     def _weights(self, mesh, points, cells):
         """(blocks, phi) per point: the cell's DOF blocks and its basis functions at the point."""

@@ -1,0 +1,94 @@
+"""A dense displacement field as observations of u inside the body (docs/method.md §9).
+
+A registration's field is smooth at its own correlation length: neighbouring samples
+carry the same error, not independent ones. Counting each of 10^5 voxels as an
+independent observation would make the interval as narrow as the voxels are many, and
+the answer would depend on how finely the field was resampled. The rule here:
+
+    the body is cut into cubes (squares in 2D) of side ``correlation`` -- the field's
+    correlation length, ``[target] displacement_correlation``; by default the mesh's
+    mean cell size, below which the FE model cannot follow the field anyway -- and each
+    cube with samples is one observation: its samples' mean position and mean
+    displacement, with the field's noise ``displacement_noise``.
+
+So the estimate does not change when the field is sampled more densely than the
+correlation length, and 10^6 samples cost what ~10^3-10^4 cells cost: one sparse
+interpolation operator over the cells' points, built once (observation.PointProbe).
+
+Samples outside the body: an image's voxels cover the air around it, so those are
+dropped (and said); a point file's samples are where the user put them, so one outside
+is bad input. No sample inside at all is a field in another frame or unit.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import ufl
+from dolfinx import fem
+from mpi4py import MPI
+
+from fenics_elasto.model.observation import distances_to_body
+from fenics_elasto.util.errors import require
+from fenics_elasto.util.logs import log
+
+
+@dataclass
+class DisplacementField:
+    """Samples of the deformation: at ``points`` the body moved by ``vectors``; ``source``
+    names the file in error lines; ``dense``: an image's grid (samples outside the
+    body are dropped, not refused)."""
+
+    points: np.ndarray
+    vectors: np.ndarray
+    source: str = "displacement"
+    dense: bool = False
+
+
+def mean_cell_size(mesh) -> float:
+    """The edge of a regular simplex with the mesh's mean cell volume."""
+    tdim = mesh.topology.dim
+    volume = mesh.comm.allreduce(fem.assemble_scalar(fem.form(1.0 * ufl.dx(domain=mesh))))
+    cells = mesh.topology.index_map(tdim).size_global
+    mean = volume / cells
+    return float((6.0 * np.sqrt(2.0) * mean) ** (1 / 3) if tdim == 3 else np.sqrt(4.0 * mean / np.sqrt(3.0)))
+
+
+def aggregate(points: np.ndarray, vectors: np.ndarray, length: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(mean points, mean vectors, sample counts), one row per occupied cube of side ``length``."""
+    keys = np.floor((points - points.min(axis=0)) / length).astype(np.int64)
+    _, cell, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    cell = cell.ravel()
+
+    def mean(a):
+        return np.stack([np.bincount(cell, a[:, c], len(counts)) for c in range(a.shape[1])], axis=1) / counts[:, None]
+
+    return mean(points), mean(vectors), counts
+
+
+def observed_samples(field: DisplacementField, mesh, correlation: float | None) -> DisplacementField:
+    """The field as the estimate observes it: inside the body, one sample per
+    correlation cell (module docstring)."""
+    size = float(np.ptp(mesh.geometry.x, axis=0).max())
+    size = mesh.comm.allreduce(size, op=MPI.MAX)
+    tolerance = 1e-6 * size
+    outside = distances_to_body(mesh, field.points) > tolerance
+    require(not outside.all(), f"{field.source}: no sample lies inside the body (the field's points span "
+            f"{np.round(field.points.min(axis=0), 3).tolist()} to {np.round(field.points.max(axis=0), 3).tolist()}): "
+            "is it in another frame or unit?")
+    if field.dense:
+        points, vectors = field.points[~outside], field.vectors[~outside]
+    else:
+        first = np.round(field.points[np.argmax(outside)], 6).tolist()
+        require(not outside.any(), f"{field.source}: {int(outside.sum())} of {len(outside)} points lie outside "
+                f"the body, the first at {first}")
+        points, vectors = field.points, field.vectors
+    length = correlation or mean_cell_size(mesh)
+    points, vectors, counts = aggregate(points, vectors, length)
+    # A cell's mean point can fall outside a concave body: drop it (its samples are few).
+    inside = distances_to_body(mesh, points) <= tolerance
+    log.info(f"displacement field {field.source}: {len(field.points)} samples, {int((~outside).sum())} inside the "
+             f"body, observed as {int(inside.sum())} cells of {length:.3g} (its correlation length"
+             f"{'' if correlation else ': the mesh cell size, [target] displacement_correlation sets it'})")
+    return DisplacementField(points[inside], vectors[inside], field.source)
