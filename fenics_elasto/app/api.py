@@ -25,7 +25,6 @@ from fenics_elasto.util.logs import log
 if TYPE_CHECKING:
     import pyvista as pv
 
-    from fenics_elasto.inverse.misfit import FieldTerm
     from fenics_elasto.inverse.objective import InverseProblem
 
 PathLike = str | os.PathLike[str]
@@ -116,10 +115,12 @@ def inverse_problem(scene: Scene, target: Target | None = None,
                     bases: Bases | PathLike | None = None) -> tuple[InverseProblem, np.ndarray | None, float | None]:
     """The estimate's set-up, checked: (the inverse problem, W or None, the bases' held-out
     energy). ``target`` None: the scene's [target] files."""
+    from fenics_elasto.inverse.measured_force import with_force_reference
+    from fenics_elasto.inverse.misfit import FieldTerm
     from fenics_elasto.inverse.objective import InverseProblem
 
     require(target is None or isinstance(target, Target), f"estimate: expected a Target, got {type(target).__name__}")
-    scene = for_command(scene, "estimate", [] if target is None else [("target", target.spec())])
+    scene = with_force_reference(for_command(scene, "estimate", [] if target is None else [("target", target.spec())]))
     problem = InverseProblem(scene, target=None if target is None else target.data(scene.gdim))
     basis, held_out = _bases_of(problem, bases)
     field = len(problem.misfit.rows_of(FieldTerm))

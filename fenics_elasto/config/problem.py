@@ -22,6 +22,10 @@ def _check_boundary(boundary: dict, where: Where) -> dict:
     both = [g for g in boundary["fixed"] if g in boundary["loaded"]]
     if both:
         where.fail(f"group {show(both[0])} is both fixed and loaded; a facet is either clamped or loaded")
+    unloaded = [g for g in boundary["measured_force"] if g not in boundary["loaded"]]
+    if unloaded:
+        where.at("measured_force").at(unloaded[0]).fail(
+            "a measured force acts through a loaded group, and this one is not in boundary.loaded")
     _check_sizes(boundary, None, where)
     return boundary
 
@@ -36,6 +40,8 @@ def _check_sizes(boundary: dict, gdim: int | None, where: Where) -> None:
     """Every vector and matrix of ``[boundary.displacement]`` / ``[boundary.load]`` has
     one size: ``gdim`` if given, else the first one's."""
     sized = [(where.at("load").at(g), len(v)) for g, v in boundary["load"].items()]
+    sized += [(where.at("measured_force").at(g).at("value"), len(f["value"]))
+              for g, f in boundary["measured_force"].items()]
     for group, spec in boundary["displacement"].items():
         at = where.at("displacement").at(group)
         sized += [(at.at(k), len(spec[k])) for k in ("value", "gradient", "center") if spec[k] is not None]
@@ -68,6 +74,10 @@ DISPLACEMENT = Table({  # u(x) = value + (gradient + scale I)(x - center) [+ rip
     "ripple": Key(RIPPLE),
 })
 
+MEASURED_FORCE = Table({  # the total force applied through a loaded group, with its std (measured_force.py)
+    "value": Key(Vector(), REQUIRED), "noise": Key(Number(gt=0), REQUIRED),
+})
+
 BOUNDARY = Table({
     "fixed": Key(Names(), []),
     "loaded": Key(Names(), []),
@@ -76,6 +86,7 @@ BOUNDARY = Table({
     "displacement": Key(Named(DISPLACEMENT, "GROUP = {value, scale, gradient, center}"), {}),
     "load": Key(Named(Vector(), "GROUP = total force vector"), {}),
     "pressure": Key(Named(Number(), "GROUP = pressure (pushes the wall into the body)"), {}),
+    "measured_force": Key(Named(MEASURED_FORCE, "GROUP = {value, noise}"), {}),
 }, after=_check_boundary)
 
 TARGET = Table({

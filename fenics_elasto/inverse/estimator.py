@@ -30,6 +30,7 @@ from fenics_elasto.geometry.matching import match_surface
 from fenics_elasto.geometry.targets import SurfaceTerm
 from fenics_elasto.inverse.checks import check_determined, check_extent, check_overlap, target_warnings
 from fenics_elasto.inverse.inner import LBFGS, GaussNewton, InnerResult
+from fenics_elasto.inverse.measured_force import apply_measured_force, measured_forces
 from fenics_elasto.inverse.misfit import PointTerm
 from fenics_elasto.inverse.objective import Evaluation, InverseProblem
 from fenics_elasto.inverse.options import Options
@@ -200,7 +201,8 @@ def estimate(problem: InverseProblem, options: Options | None = None, basis: np.
     require(len(problem.params), f"{scene.path}: nothing to estimate: mark at least one E or nu with estimate = true")
     require(any(not m.E.estimate for m in scene.materials),
             f"{scene.path}: every E is estimated, but with unknown boundary forces only ratios of E "
-            "are identifiable (scaling K and F together leaves u unchanged): fix one region's E as the reference")
+            "are identifiable (scaling K and F together leaves u unchanged): fix one region's E as the reference, "
+            "or give a measured force ([boundary.measured_force.GROUP])")
     options = options or Options.from_scene(scene)
     phi_undeformed = check_overlap(problem)
     extent_warnings = check_extent(problem)
@@ -209,9 +211,13 @@ def estimate(problem: InverseProblem, options: Options | None = None, basis: np.
     warnings = list(scene.warnings) + [w for w in checks if w]
     estimator = Estimator(problem, options, basis)
     try:
-        return _run(estimator, warnings, extent_warnings, phi_undeformed, held_out, start)
+        result = _run(estimator, warnings, extent_warnings, phi_undeformed, held_out, start)
     finally:
         estimator.close()
+    measured = measured_forces(scene)
+    if measured:
+        apply_measured_force(problem, result, measured)
+    return result
 
 
 def _run(estimator: Estimator, warnings: list[str], extent_warnings: list[str], phi_undeformed: float,

@@ -73,6 +73,7 @@ class Scene:
     load: dict[str, np.ndarray] = field(default_factory=dict)  # total force, per group
     pressure: dict[str, float] = field(default_factory=dict)  # pressure pushing the wall in, per group
     match_nodes: str = "auto"  # "auto" | "all" | "vertices" (observation.matched_vertices_only)
+    force_reference: str | None = None  # the region whose E a measured force scales (measured_force.py)
     warnings: list[str] = field(default_factory=list)  # what loading it found worth a warning (curving)
 
     @property

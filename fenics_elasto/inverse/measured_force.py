@@ -1,0 +1,122 @@
+"""A measured total force: the scale that unknown forces leave open (docs/method.md §9).
+
+With unknown boundary forces, scaling every E and the forces together leaves u
+unchanged, so surfaces, landmarks and fields determine only the ratios of E and the
+boundary motion. A force F_g measured on a loaded group g (a probe's load cell) fixes
+the scale. The estimate runs with one E as the reference, as without a force; at its
+answer the loaded nodes' forces summed over each group give the predicted F_g(1), and
+every E and force is multiplied by the scale s minimising
+
+    sum_g |s F_g(1) - F_g|^2 / noise_g^2,   s = sum_g F_g(1).F_g / noise_g^2 / sum_g |F_g(1)|^2 / noise_g^2,
+
+exact for the joint problem where the data other than the force do not see s (they do
+not: u is unchanged), and with var(s) = 1 / sum_g |F_g(1)|^2 / noise_g^2. An E's
+absolute variance adds its ratio's, scaled, and the scale's: var(s E) = s^2 var(E) +
+E^2 var(s) (independent: the ratios come from the motion, the scale from the force).
+A predicted force that points elsewhere than the measured one (chi^2 beyond its
+degrees of freedom) is said: the motion and the force disagree.
+
+When every E is marked estimated, the first region's E is held at its initial value as
+the reference while the motion is fitted, and reported, scaled, as estimated.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from fenics_elasto.util.logs import log
+
+Z95 = 1.959963984540054
+
+
+@dataclass
+class MeasuredForce:
+    group: str
+    value: np.ndarray
+    noise: float
+
+
+def measured_forces(scene) -> list[MeasuredForce]:
+    """[boundary.measured_force] (groups checked loaded by the schema)."""
+    table = scene.config["boundary"].get("measured_force") or {}
+    return [MeasuredForce(g, np.asarray(f["value"], float), float(f["noise"])) for g, f in table.items()]
+
+
+def with_force_reference(scene):
+    """The scene to fit the motion on: as given, unless a force is measured and every E
+    is estimated -- then the first region's E is the fitting's reference (module docstring)."""
+    if not measured_forces(scene) or any(not m.E.estimate for m in scene.materials):
+        return scene
+    first = scene.materials[0]
+    held = replace(first, E=replace(first.E, estimate=False))
+    log.info(f"every E is estimated and a force is measured: {first.name}.E is held at {first.E.value:g} while the "
+             "motion is fitted, then every E is scaled by the force")
+    return replace(scene, materials=[held, *scene.materials[1:]], force_reference=first.name)
+
+
+def group_forces(problem, forces: np.ndarray) -> dict[str, np.ndarray]:
+    """The total force through each loaded group: its nodes' forces summed (a node on
+    two loaded groups counts for the first)."""
+    nodal = forces.reshape(-1, problem.gdim)
+    group = problem.loaded_groups()
+    return {name: nodal[group == i].sum(axis=0) for i, name in enumerate(problem.scene.loaded)}
+
+
+@dataclass
+class Scale:
+    value: float
+    std: float
+    chi2: float
+    dof: int
+
+
+def force_scale(predicted: dict[str, np.ndarray], measured: list[MeasuredForce]) -> Scale:
+    """The least-squares scale s of the predicted forces onto the measured ones."""
+    a = sum(float(predicted[m.group] @ predicted[m.group]) / m.noise**2 for m in measured)
+    b = sum(float(predicted[m.group] @ m.value) / m.noise**2 for m in measured)
+    s = b / a
+    chi2 = sum(float(np.sum((s * predicted[m.group] - m.value) ** 2)) / m.noise**2 for m in measured)
+    return Scale(s, float(1.0 / np.sqrt(a)), chi2, sum(len(m.value) for m in measured) - 1)
+
+
+def apply_measured_force(problem, result, measured: list[MeasuredForce]) -> None:
+    """Scale the estimate's E and forces by the measured force (in place: theta, forces,
+    result.json's materials, uncertainty and ``measured_force``; its ``history`` stays the
+    fit's, in the reference's units)."""
+    record = result.record
+    predicted = group_forces(problem, result.forces)
+    scale = force_scale(predicted, measured)
+    s = scale.value
+    is_E = problem.params.is_E
+    ratio_std = {label: entry["std"] for label, entry in record.get("uncertainty", {}).items()
+                 if isinstance(entry, dict) and "std" in entry}
+    result.theta = np.where(is_E, result.theta * s, result.theta)
+    result.forces = result.forces * s
+    for name, values in record["materials"].items():
+        values["E"] = float(values["E"] * s)
+        label = f"{name}.E"
+        E = values["E"]
+        if label in ratio_std or name == problem.scene.force_reference:
+            by_force = E * scale.std / s
+            entry = record.setdefault("uncertainty", {}).setdefault(label, {"ci95": [E / s, E / s]})
+            low, high = (s * end for end in entry["ci95"])  # the ratio's interval (profiled: maybe asymmetric)
+            entry["std"] = float(np.hypot(s * ratio_std.get(label, 0.0), by_force))
+            entry["ci95"] = [E - float(np.hypot(E - low, Z95 * by_force)), E + float(np.hypot(high - E, Z95 * by_force))]
+            entry.setdefault("parts", {})["force"] = by_force
+    reference = problem.scene.force_reference
+    if reference:  # reported as estimated: the force determined it
+        result.labels = [f"{reference}.E", *result.labels]
+        result.theta = np.concatenate([[record["materials"][reference]["E"]], result.theta])
+    record["measured_force"] = {
+        "scale": s, "scale_std": scale.std, "chi2": scale.chi2, "dof": scale.dof, "reference": reference,
+        "groups": {m.group: {"measured": m.value.tolist(), "predicted": (s * predicted[m.group]).tolist(),
+                             "noise": m.noise} for m in measured}}
+    log.info(f"measured force: every E and force scaled by {s:.4g} ± {scale.std:.2g} "
+             f"(chi2 {scale.chi2:.3g} on {scale.dof} dof)")
+    if scale.dof > 0 and scale.chi2 > scale.dof + 3.0 * np.sqrt(2.0 * scale.dof) + 9.0:
+        text = (f"the measured force and the fitted motion disagree (chi2 {scale.chi2:.3g} on {scale.dof} dof): the "
+                "predicted force points elsewhere; check the force's frame and group, or its noise")
+        log.warning(text)
+        record.setdefault("warnings", []).append(text)
