@@ -111,17 +111,24 @@ def _bases_of(problem: InverseProblem, bases: Bases | PathLike | None) -> tuple[
     return (None, None) if table is None else load_bases(problem.scene.path.parent / table["bases"], problem, table["rank"])
 
 
-def inverse_problem(scene: Scene, target: Target | None = None,
+def inverse_problem(scene: Scene, target: Target | Mapping[str, Target] | None = None,
                     bases: Bases | PathLike | None = None) -> tuple[InverseProblem, np.ndarray | None, float | None]:
     """The estimate's set-up, checked: (the inverse problem, W or None, the bases' held-out
-    energy). ``target`` None: the scene's [target] files."""
+    energy). ``target`` None: the scene's [target] files; a mapping: several states."""
     from fenics_elasto.inverse.measured_force import with_force_reference
     from fenics_elasto.inverse.misfit import FieldTerm
     from fenics_elasto.inverse.objective import InverseProblem
 
-    require(target is None or isinstance(target, Target), f"estimate: expected a Target, got {type(target).__name__}")
-    scene = with_force_reference(for_command(scene, "estimate", [] if target is None else [("target", target.spec())]))
-    problem = InverseProblem(scene, target=None if target is None else target.data(scene.gdim))
+    if isinstance(target, Mapping):  # several states of one body
+        require(len(target) > 0 and all(isinstance(t, Target) for t in target.values()),
+                "estimate: several states are a mapping {name: Target, ...}")
+        states = [{"name": str(name), "target": t.spec()} for name, t in target.items()]
+        scene = for_command(scene, "estimate", [("states", states)])
+        problem = InverseProblem(scene, target=[(str(name), t.data(scene.gdim)) for name, t in target.items()])
+    else:
+        require(target is None or isinstance(target, Target), f"estimate: expected a Target, got {type(target).__name__}")
+        scene = with_force_reference(for_command(scene, "estimate", [] if target is None else [("target", target.spec())]))
+        problem = InverseProblem(scene, target=None if target is None else target.data(scene.gdim))
     basis, held_out = _bases_of(problem, bases)
     field = len(problem.misfit.rows_of(FieldTerm))
     landmarks = len(problem.misfit.landmark_rows()) - field
@@ -132,9 +139,12 @@ def inverse_problem(scene: Scene, target: Target | None = None,
     return problem, basis, held_out
 
 
-def estimate(scene: Scene, target: Target | None = None, bases: Bases | PathLike | None = None) -> Estimate:
+def estimate(scene: Scene, target: Target | Mapping[str, Target] | None = None,
+             bases: Bases | PathLike | None = None) -> Estimate:
     """Estimate the scene's estimated constants (``estimate = true`` in [materials]) and
-    the unknown forces on its loaded groups from ``target`` (None: the scene's [target]).
+    the unknown forces on its loaded groups from ``target`` (None: the scene's [target]
+    or [[states]]; ``{name: Target, ...}``: several states of the body, each with its own
+    forces, the materials shared).
     ``bases``: reduced force bases (a Bases or a file from ``train``); None uses the
     scene's [reduction] if it has one, else the full force space. On Ctrl-C it returns
     the best answer so far (``interrupted``). Collective."""

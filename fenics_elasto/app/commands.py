@@ -123,6 +123,8 @@ def write_estimate(folder, problem, result) -> None:
         target.save(folder.path_for("target.vtp"))
         plot_convergence(result.record, folder.path_for("convergence.png"))
         folder.write_text("forces.csv", point_csv(points, result.forces.reshape(len(points), -1), "f"))
+        for name, forces in result.state_forces.items():
+            folder.write_text(f"forces_{name}.csv", point_csv(points, forces.reshape(len(points), -1), "f"))
 
 
 def units(scene) -> str:

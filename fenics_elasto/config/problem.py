@@ -11,8 +11,8 @@ import os
 from collections.abc import Callable, Mapping
 from pathlib import Path
 
-from fenics_elasto.config.schema import (REQUIRED, Boolean, Choice, Elastic, Integer, Key, LabelTargets, Matrix, Named, Names,
-                                         Number, String, Table, Vector, Where, show)
+from fenics_elasto.config.schema import (REQUIRED, ArrayOf, Boolean, Choice, Elastic, Integer, Key, LabelTargets, Matrix,
+                                         Named, Names, Number, String, Table, Vector, Where, show)
 from fenics_elasto.config.toml import apply_overrides, read_toml
 
 COMMANDS = ("simulate", "estimate", "train")
@@ -106,6 +106,19 @@ TARGET = Table({
    expected="a table {surface, surfaces or labels, landmarks, displacement, landmark_weight, landmark_noise, "
             "displacement_noise, displacement_correlation, noise, smooth}")
 
+def _check_states(states: list, where: Where) -> list:
+    names = [state["name"] for state in states]
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:
+        where.fail(f"state name {show(twice[0])} is given twice; each state needs its own name")
+    return states
+
+
+STATE = Table({  # one state of the body: its own target and unknown forces, the materials shared
+    "name": Key(String("a state name"), REQUIRED),
+    "target": Key(TARGET, REQUIRED),
+})
+
 OPTIMIZER = Table({
     "inner": Key(Choice("auto", "gauss-newton", "lbfgs", "lbfgs-forces"), "auto"),
     "inner_maxiter": Key(Integer(ge=1), 400),
@@ -128,6 +141,7 @@ PROBLEM = Table({
     "materials": Key(Named(MATERIAL, "[materials.NAME] tables", minimum=1), REQUIRED),
     "boundary": Key(BOUNDARY, {}),
     "target": Key(TARGET),
+    "states": Key(ArrayOf(STATE, "[[states]] tables {name, target}")),
     "optimizer": Key(OPTIMIZER, {}),
     # the source mesh's own error, from a solve one degree higher at the answer: corrected and counted
     # ("auto": in 3D), or not
@@ -139,7 +153,8 @@ PROBLEM = Table({
         "factor": Key(Choice("lu", "cholesky"), "lu"),  # direct only
         "blr": Key(Number(ge=0, le=1e-2, noun="a block low-rank tolerance (0: off)"), 0.0),  # direct only
     }), {}),
-})
+}, exclusive=[("target", "states")], after=lambda c, where: {
+    **c, "states": None if c["states"] is None else _check_states(c["states"], where.at("states"))})
 
 # What each command needs in [boundary], and why.
 # The keys of problem.toml whose values are file names (relative to the problem file's folder)
@@ -149,7 +164,10 @@ FILE_KEYS = {("mesh",), ("target", "surface"), ("target", "landmarks"), ("target
 
 
 def is_file_key(keys: tuple[str, ...]) -> bool:
-    """Does the value at these dotted keys name a file? (``target.surfaces.GROUP`` too.)"""
+    """Does the value at these dotted keys name a file? (``target.surfaces.GROUP`` too, and
+    a state's target keys: ``states.I.target...``.)"""
+    if keys[:1] == ("states",) and len(keys) > 2:
+        return is_file_key(keys[2:])
     return keys in FILE_KEYS or (keys[:2] == ("target", "surfaces") and len(keys) == 3)
 
 
@@ -160,6 +178,8 @@ def map_files(keys: tuple[str, ...], value, change: Callable[[str], str]):
         value = os.fspath(value)
     if isinstance(value, Mapping):
         return {k: map_files(keys + (str(k),), v, change) for k, v in value.items()}
+    if isinstance(value, list) and keys == ("states",):
+        return [map_files(keys + (str(i),), v, change) for i, v in enumerate(value)]
     return change(value) if isinstance(value, str) and is_file_key(keys) else value
 
 
@@ -190,8 +210,12 @@ def _command_checks(config: dict, command: str, where: Where) -> list[str]:
         if not boundary[key]:
             at.at(key).fail(f"{command} needs at least one group: {what}; got []")
     if command == "estimate":
-        if config["target"] is None:
-            where.at("target").fail("missing; estimate needs surface, surfaces or landmarks", table=True)
+        if config["target"] is None and config["states"] is None:
+            where.at("target").fail("missing; estimate needs surface, surfaces, landmarks or displacement "
+                                    "(or [[states]], each with its target)", table=True)
+        if config["states"] is not None and boundary["measured_force"]:
+            where.at("boundary").at("measured_force").fail("is not yet taken with [[states]]: give one state's "
+                                                           "target in [target] to use a measured force")
         if config["reduction"] is not None and config["optimizer"]["inner"] not in ("auto", "gauss-newton"):
             where.at("optimizer").at("inner").fail(
                 f'reduced bases need "gauss-newton" (or "auto"), got {show(config["optimizer"]["inner"])}')

@@ -371,6 +371,20 @@ class Named(Node):
         return {name: self.child(name, where.at(name)).check(item, where.at(name)) for name, item in value.items()}
 
 
+class ArrayOf(Node):
+    """An array of tables of one kind (``[[states]]``), each checked at its index; set
+    whole by an override."""
+
+    def __init__(self, item: Node, what: str, minimum: int = 1):
+        self.item, self.minimum = item, minimum
+        self.expected = f"an array of {what}"
+
+    def check(self, value, where):
+        if not isinstance(value, list) or len(value) < self.minimum:
+            where.fail(f"expected {self.expected} (at least {self.minimum}), got {given(value)}")
+        return [self.item.check(item, where.at(i)) for i, item in enumerate(value)]
+
+
 class LabelTargets(Named):
     """``[target.labels]``: ``image = "..."`` (the deformed state's label map) and
     ``GROUP = label or [labels]`` per matched facet group (its target: the boundary of

@@ -17,7 +17,7 @@ from fenics_elasto.inverse.options import Options
 
 def check_overlap(problem: InverseProblem) -> float:
     """Refuse a target that does not lie on the observed surface; return Phi at u = 0."""
-    y = problem.observation.points
+    y = problem.points
     residual = problem.residual_at_rest
     observed = problem.misfit.weights > 0
     size = float(np.linalg.norm(np.ptp(y, axis=0)))
@@ -83,14 +83,20 @@ def check_extent(problem: InverseProblem) -> list[str]:
     the matched nodes it is compared with: more than UNITS_RATIO x larger is refused
     (no elasticity turns a surface into one three times its size), beyond EXTENT_RATIO
     either way is a warning (a partial segmentation is smaller and may be right)."""
-    out, misfit, spec = [], problem.misfit, problem.scene.config["target"] or {}
-    matched = problem.scene.matched
+    out = []
+    for misfit, spec in zip(problem.states.misfits, problem.states.specs):
+        out += _extent_warnings(problem, misfit, spec)
+    return out
+
+
+def _extent_warnings(problem: InverseProblem, misfit, spec: dict) -> list[str]:
+    out, matched = [], problem.scene.matched
     for rows, term in zip(misfit.slices, misfit.terms):
         if not isinstance(term, SurfaceTerm):
             continue
         for i, surface in enumerate(term.surfaces):
             name = f"target.surface ({spec['surface']})" if spec.get("surface") else \
-                f"target.surfaces.{matched[i]} ({spec['surfaces'][matched[i]]})"
+                f"target.surfaces.{matched[i]} ({(spec.get('surfaces') or {}).get(matched[i], 'labels')})"
             own = problem.observation.points[rows][term.surface_of == i]
             size = float(np.linalg.norm(np.ptp(own, axis=0))) if len(own) else 0.0
             if size <= 0:

@@ -59,6 +59,7 @@ class EstimateResult:
     forces: np.ndarray  # recovered nodal forces of the loaded nodes, flat
     evaluation: Evaluation
     record: dict = field(default_factory=dict)  # result.json
+    state_forces: dict[str, np.ndarray] = field(default_factory=dict)  # several states: each one's forces
 
     def __getitem__(self, key):
         return self.record[key]
@@ -83,22 +84,30 @@ def choose_inner(problem: InverseProblem, options: Options, basis) -> str:
         small = problem.force_dofs <= options.full_gn_limit
         inner = "gauss-newton" if basis is not None or small else "lbfgs"
     require(basis is None or inner == "gauss-newton", "reduced bases need optimizer.inner = 'gauss-newton'")
+    require(problem.states.count == 1 or inner == "gauss-newton",
+            f"{problem.scene.path}: several states need the Gauss-Newton inner solver: reduced bases ([reduction], "
+            f"from `fenics-elasto train`) or a force space of at most {options.full_gn_limit} dofs")
     return inner
 
 
 def surface_matched_start(problem: InverseProblem) -> np.ndarray:
-    """The loaded nodes' displacement that surface matching finds (flat): matched nodes
-    moved onto their target surfaces (landmarks only: each takes its nearest landmark's
-    displacement); loaded nodes that are not matched stay put."""
-    term = problem.misfit.terms[0]
+    """Every state's loaded nodes' displacement that surface matching finds (flat, one
+    state after another): matched nodes moved onto their target surfaces (no surfaces:
+    each takes its nearest landmark's or field sample's displacement); loaded nodes that
+    are not matched stay put."""
+    return np.concatenate([_matched_start(problem, misfit) for misfit in problem.states.misfits])
+
+
+def _matched_start(problem: InverseProblem, misfit) -> np.ndarray:
+    term = misfit.terms[0]
     nodes = problem.matched_coords
     if isinstance(term, SurfaceTerm):
         u = match_surface(nodes, problem.node_groups(), term)
     else:
-        rows = problem.misfit.landmark_rows()
-        landmarks = problem.misfit.terms[-1]
-        assert isinstance(landmarks, PointTerm)  # a target of landmarks alone
-        moved = landmarks.points - problem.observation.points[rows]
+        rows = misfit.landmark_rows()
+        rows = rows[misfit.weights[rows] > 0]  # this state's own points
+        targets = np.concatenate([t.points for t in misfit.terms if isinstance(t, PointTerm)])
+        moved = targets - problem.observation.points[rows]
         u = moved[cKDTree(problem.observation.points[rows]).query(nodes)[1]]
     return problem.forward.on_loaded(problem.observation.node_field(u))
 
@@ -135,7 +144,7 @@ class Estimator:
     def initial_controls(self, theta) -> np.ndarray:
         if self.inner_name == "lbfgs-forces":
             return self.problem.forward.reaction_forces(theta, self.problem.forward.from_boundary(theta, self.d0))
-        return self.d0 if self.basis is None else self.basis.T @ self.d0
+        return self.problem.states.to_controls(self.basis, self.d0)
 
     def run(self) -> None:
         """Scan, check the data determine the materials, minimise Phi*, polish."""
@@ -264,5 +273,12 @@ def _run(estimator: Estimator, warnings: list[str], extent_warnings: list[str], 
     if post is not None:
         for line in describe_uncertainty(post, theta) + largest_part(post) + describe_offset(post):
             log.info(line)
+    state_forces = {}
+    if problem.states.count > 1:  # each state's distances and forces; ``forces`` and ``u`` are the first's
+        state_forces = {name: problem.forward.reaction_forces(theta, u)
+                        for name, u in zip(problem.states.names, best.evaluation.fields)}
+        record["states"] = {name: {"distances": distances, "forces": f"forces_{name}.csv"}
+                            for name, distances in problem.states.distances(best.evaluation.residual).items()}
     record["wall_time_s"] = round(time.perf_counter() - start, 3)
-    return EstimateResult(theta, list(problem.params.labels), best.evaluation.u, forces, best.evaluation, record)
+    return EstimateResult(theta, list(problem.params.labels), best.evaluation.u, forces, best.evaluation, record,
+                          state_forces)

@@ -62,7 +62,7 @@ class GaussNewton:
     def __init__(self, problem: InverseProblem, q0: np.ndarray, anchor: float, maxiter: int, tol: float):
         self.problem = problem
         self.misfit = problem.misfit
-        self.points = problem.observation.points
+        self.points = problem.points
         self.q0 = q0
         self.anchor = anchor
         self.alpha: float | None = None  # fixed on the first fit: alpha = anchor x mean curvature of the data term
@@ -125,7 +125,7 @@ class GaussNewton:
         """The inner optimum at theta for the response J = ``response(theta)``, evaluated in full."""
         J = response(theta)
         fit = self.fit(J)
-        d = fit.q if basis is None else basis @ fit.q
+        d = self.problem.states.to_motion(basis, fit.q)
         ev = self.problem.evaluate_displacement(theta, d, gradient=True)
         return InnerResult(fit.q, ev, fit.iterations, fit.converged, fit.prior, J)
 

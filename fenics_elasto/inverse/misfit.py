@@ -199,6 +199,7 @@ class TargetData:
     landmarks: tuple[np.ndarray, np.ndarray] | None = None
     displacement: DisplacementField | None = None
     source: str = "target"
+    spec: dict | None = None  # its [target] table (weights, noise); None: the scene's
 
     def observed_points(self) -> np.ndarray | None:
         """The points observed inside the body: the landmarks', then the field's (sampled:
@@ -208,37 +209,45 @@ class TargetData:
         return np.concatenate(parts) if parts else None
 
 
-def read_target(scene) -> TargetData:
-    """The scene's [target] files read (paths relative to the problem file), the rough
-    3D surfaces smoothed (``smooth``)."""
-    spec = scene.config["target"]
-    require(spec is not None, f"{scene.path}: [target]: missing; give surface, surfaces and/or landmarks")
+def read_target(scene, spec: dict | None = None, where: str | None = None) -> TargetData:
+    """The scene's [target] files (or another target table ``spec``, e.g. a state's,
+    named ``where`` in messages) read, paths relative to the problem file, the rough 3D
+    surfaces smoothed (``smooth``)."""
+    spec = scene.config["target"] if spec is None else spec
+    where = where or f"{scene.path}: [target]"
+    require(spec is not None, f"{where}: missing; give surface, surfaces, landmarks and/or displacement")
     base = scene.path.parent
     read = lambda name: target_surface(base / name, scene.gdim, spec["smooth"])  # noqa: E731
     if spec["surfaces"] is not None:  # the names first: a file of a group not matched is not read
-        check_surface_groups(scene.matched, spec["surfaces"], f"{scene.path}: [target].surfaces")
+        check_surface_groups(scene.matched, spec["surfaces"], f"{where}.surfaces")
     surfaces = {g: read(f) for g, f in spec["surfaces"].items()} if spec["surfaces"] is not None else None
     if spec.get("labels") is not None:
-        surfaces = label_map_targets(scene, spec["labels"])
+        surfaces = label_map_targets(scene, spec["labels"], f"{where}.labels")
+    landmarks = None if spec.get("landmarks") is None else read_landmarks(base / spec["landmarks"], scene.gdim)
     return TargetData(surface=read(spec["surface"]) if spec["surface"] is not None else None, surfaces=surfaces,
-                      landmarks=read_target_landmarks(scene), displacement=read_target_field(scene),
-                      source=f"{scene.path}: [target]")
+                      landmarks=landmarks, displacement=read_target_field(scene, spec), source=where, spec=spec)
 
 
-def read_target_field(scene) -> DisplacementField | None:
-    """[target] displacement: the field's samples as read (not yet sampled), or None."""
-    spec = scene.config["target"] or {}
+def read_targets(scene) -> list[tuple[str, TargetData]]:
+    """(state name, target) of every state of the scene: [[states]], or the one [target] ("")."""
+    if scene.config.get("states") is None:
+        return [("", read_target(scene))]
+    return [(state["name"], read_target(scene, state["target"], f"{scene.path}: [[states]] {state['name']}: target"))
+            for state in scene.config["states"]]
+
+
+def read_target_field(scene, spec: dict) -> DisplacementField | None:
+    """A target table's displacement: the field's samples as read (not yet sampled), or None."""
     if spec.get("displacement") is None:
         return None
     path = scene.path.parent / spec["displacement"]
     return DisplacementField(*read_displacement(path, scene.gdim), source=str(path), dense=is_image(path))
 
 
-def label_map_targets(scene, table: dict) -> dict[str, Surface]:
+def label_map_targets(scene, table: dict, where: str) -> dict[str, Surface]:
     """``[target.labels]``: per matched group the boundary of its labels' union in the
     deformed state's label map (SurfaceNets, smoothed; world coordinates as the image's
     header gives them)."""
-    where = f"{scene.path}: [target.labels]"
     groups = {g: labels for g, labels in table.items() if g != "image"}
     check_surface_groups(scene.matched, groups, where, noun="labels")
     image = read_label_image(scene.path.parent / table["image"], f"{where} image")
@@ -249,14 +258,6 @@ def label_map_targets(scene, table: dict) -> dict[str, Surface]:
         require(not absent, f"{where} {group}: label(s) {absent} not in {table['image']}")
         out[group] = Surface(*label_surface(image.labels, image.affine, labels))
     return out
-
-
-def read_target_landmarks(scene) -> tuple[np.ndarray, np.ndarray] | None:
-    """(source points, observed points) of [target] landmarks, or None."""
-    spec = scene.config["target"] or {}
-    if spec.get("landmarks") is None:
-        return None
-    return read_landmarks(scene.path.parent / spec["landmarks"], scene.gdim)
 
 
 def landmark_weight(spec: dict, surfaces: list[Surface]) -> float:
@@ -325,13 +326,15 @@ def check_surface_groups(matched: list[str], given, where: str, noun: str = "sur
     require(not unknown, f"{where}: {unknown} not in boundary.matched")
 
 
-def build_misfit(scene, node_groups: np.ndarray, target: TargetData) -> Misfit:
-    """A target as a Misfit over the scene's observation rows (weights from [target]).
+def build_misfit(scene, node_groups: np.ndarray, target: TargetData, before: int = 0, after: int = 0) -> Misfit:
+    """A target as a Misfit over the scene's observation rows (weights from its [target]).
 
     ``node_groups``: index into ``scene.matched`` of each matched node (canonical order);
-    the landmarks' rows follow the nodes'.
+    the target's own observed points (landmarks, then field samples) follow the nodes',
+    after ``before`` rows of other states' points and before ``after`` more: rows this
+    target does not observe.
     """
-    spec = scene.config["target"] or {"landmark_weight": None}
+    spec = target.spec or scene.config["target"] or {"landmark_weight": None}
     where = target.source
     require(any(x is not None for x in (target.surface, target.surfaces, target.landmarks, target.displacement)),
             f"{where}: missing; give surface, surfaces, landmarks and/or displacement")
@@ -341,14 +344,25 @@ def build_misfit(scene, node_groups: np.ndarray, target: TargetData) -> Misfit:
     elif target.surfaces is not None:
         check_surface_groups(scene.matched, target.surfaces, f"{where}.surfaces")
         blocks.append((len(node_groups), SurfaceTerm([target.surfaces[g] for g in scene.matched], node_groups), 1.0))
-    else:  # landmarks alone: the matched nodes observe nothing
+    else:  # no surfaces: the matched nodes observe nothing
         blocks.append((len(node_groups), Unobserved(), 0.0))
+    surfaces = blocks[0][1].surfaces if isinstance(blocks[0][1], SurfaceTerm) else []
+    if before:
+        blocks.append((before, Unobserved(), 0.0))
     if target.landmarks is not None:
-        surfaces = blocks[0][1].surfaces if isinstance(blocks[0][1], SurfaceTerm) else []
         observed = target.landmarks[1]
         blocks.append((len(observed), PointTerm(observed), landmark_weight(spec, surfaces)))
     if target.displacement is not None:
-        surfaces = blocks[0][1].surfaces if isinstance(blocks[0][1], SurfaceTerm) else []
         field = target.displacement
         blocks.append((len(field.points), FieldTerm(field.points + field.vectors), field_weight(spec, surfaces)))
+    if after:
+        blocks.append((after, Unobserved(), 0.0))
     return Misfit(blocks)
+
+
+def stacked(misfits: Sequence[Misfit]) -> Misfit:
+    """One Misfit over the states' rows one after another (each over the same observation)."""
+    if len(misfits) == 1:
+        return misfits[0]
+    return Misfit([(s.stop - s.start, term, float(m.weights[s.start]) if s.stop > s.start else 0.0)
+                   for m in misfits for s, term in zip(m.slices, m.terms)])

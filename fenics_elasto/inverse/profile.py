@@ -64,7 +64,14 @@ class Profile:
         X = response_block(forward, theta, self.basis)
         order = 2 if len(self.params) <= 2 else 1  # second order: 1 + n + n(n+1)/2 fields per mode
         self.surrogate.add(theta, X, response_sensitivities(forward, theta, X, order))
-        return self.problem.observation.rows(X)
+        return self.problem.states.stack_controls(self.problem.observation.rows(X))
+
+    def surrogate_response(self, theta) -> tuple[np.ndarray, np.ndarray]:
+        """(J, dJ/dtheta) on the surrogate, every state's rows and controls."""
+        J, dJ = self.surrogate.response(theta)
+        if self.problem.states.count == 1:
+            return J, dJ
+        return self.problem.states.stack_controls(J), np.stack([self.problem.states.stack_controls(dJk) for dJk in dJ])
 
     def known(self, s) -> InnerResult | None:
         for s_seen, result, _ in self.solved:
@@ -92,7 +99,7 @@ class Profile:
         self.solved.append((s, result, stage))
         if result.response is not None:
             if on_surrogate is None:  # n_theta back-solves on the factorization at hand
-                dy = self.problem.observation.rows(self.problem.forward.field_derivative(theta, result.evaluation.u))
+                dy = self.problem.field_rows(theta, result.evaluation)
             self.linearisations[id(result)] = linearise(self.problem, theta, result, result.response, dy, self.inner.alpha)
             result.response = None  # kept in the linearisation only
         log.info(f"  {stage:5s} {self.params.describe(theta)}  Phi* = {result.value:.6e}  "
@@ -113,19 +120,22 @@ class Profile:
         steps = refine(self.surrogate, theta, factors, budget=factors.seconds) if factors is not None else None
         if steps is None:
             return None
-        fit = self.inner.fit(self.surrogate.response(theta)[0])
-        more = refine(self.surrogate, theta, factors, fit.q, DERIVATIVE_TOL)  # the derivative along the optimum's controls
+        fit = self.inner.fit(self.surrogate_response(theta)[0])
+        controls = np.stack(self.problem.states.split(fit.q), axis=1)  # each state's
+        more = refine(self.surrogate, theta, factors, controls, DERIVATIVE_TOL)  # the derivative along the optimum's controls
         if more is None:
             return None
         log.info(f"  surrogate refined at {self.params.describe(theta)} on nearby factors ({steps} + {more} block "
                  f"back-solves, equation residual {self.surrogate.residual(theta):.1e}): no factorization")
-        J, dJ = self.surrogate.response(theta)
+        J, dJ = self.surrogate_response(theta)
         fit = self.inner.fit(J)  # the same optimum, on the space the derivatives grew (exact to tol before)
-        u = self.problem.model.dofs.function()
-        owned = self.surrogate.G.shape[0]
-        u.x.array[:owned] = self.surrogate.fields(theta) @ fit.q
-        u.x.scatter_forward()
-        evaluation = self.problem.evaluate_field(theta, u)
+        fields, owned = [], self.surrogate.G.shape[0]
+        for q in self.problem.states.split(fit.q):
+            u = self.problem.model.dofs.function()
+            u.x.array[:owned] = self.surrogate.fields(theta) @ q
+            u.x.scatter_forward()
+            fields.append(u)
+        evaluation = self.problem.evaluate_field(theta, fields)
         evaluation.grad_theta = envelope_gradient(self.inner.misfit, fit, dJ)
         dy = np.stack([dJk @ fit.q for dJk in dJ], axis=-1)
         return InnerResult(fit.q, evaluation, fit.iterations, fit.converged, fit.prior, J), dy
@@ -172,7 +182,7 @@ class SurrogateProfile:
 
     def fit(self, s, start: np.ndarray | None = None):
         """The inner fit (a LinearFit) at s on the surrogate, from q0 or ``start``."""
-        J, _ = self.profile.surrogate.response(self.params.to_theta(s))
+        J, _ = self.profile.surrogate_response(self.params.to_theta(s))
         return self.fit_inner.fit(J, start)
 
     def inner_spread(self, s, starts, cold=None) -> tuple[float, np.ndarray]:
@@ -186,7 +196,7 @@ class SurrogateProfile:
 
     def value_and_gradient(self, s) -> tuple[float, np.ndarray]:
         theta = self.params.to_theta(s)
-        J, dJ = self.profile.surrogate.response(theta)
+        J, dJ = self.profile.surrogate_response(theta)
         fit = self.fit_inner.fit(J)
         self.evaluations += 1
         return fit.value, envelope_gradient(self.fit_inner.misfit, fit, dJ) * self.params.dtheta_ds(theta)

@@ -168,7 +168,8 @@ class MaterialSurrogate:
 
     def residuals(self, theta, q=None) -> tuple[list[np.ndarray], np.ndarray]:
         """The equations' residuals on the free DOFs (owned rows, zero on the clamped
-        DOFs): K (G + V a) of the mode fields (r columns), and with controls ``q`` that
+        DOFs): K (G + V a) of the mode fields (r columns), and with controls ``q`` (r, or
+        r x states) that
         of their derivatives along q, K V da_k q + D_k (G + V a) q (one column per
         estimated constant); and each one's norm relative to its load (K G; D_k (G + V a) q):
         0 is exact."""
@@ -179,7 +180,8 @@ class MaterialSurrogate:
 
         pairs = [(combine(c, self.MG), on(self.MV, c, a))]
         if q is not None:  # along q: matrix-vector products only
-            Q, aQ = q[:, None], a @ q[:, None]
+            Q = q if q.ndim == 2 else q[:, None]  # one column per state's controls
+            aQ = a @ Q
             pairs += [(on(self.MG, dck, Q) + on(self.MV, dck, aQ), on(self.MV, c, d @ Q)) for dck, d in zip(dc, da)]
         blocks, relative = [], []
         for load, applied in pairs:

@@ -207,9 +207,9 @@ def bases_fit(W: np.ndarray | None, d0: np.ndarray) -> dict | None:
     (missing_wall_motion asks the question that decides E)."""
     if W is None:
         return None
-    kept = W @ (W.T @ d0)
-    total = float(d0 @ d0)
-    return {"wall_motion_explained": float(kept @ kept) / total if total > 0 else 1.0}
+    kept = W @ (W.T @ d0)  # d0: one column per state, or one state's vector
+    total = float(np.sum(d0**2))
+    return {"wall_motion_explained": float(np.sum(kept**2)) / total if total > 0 else 1.0}
 
 
 # missing_wall_motion's one response: a first-order measure reported to 2 digits needs

@@ -228,7 +228,7 @@ def posterior_at(profile, result, noise: float | None = None, floor: float = 0.0
     s = next(s for s, r, _ in profile.solved if r is result)
     params = profile.params
     post = laplace(lin, params.labels, s, params.is_E, noise, floor)
-    post.patch_covariance = patch_covariance(lin, result.evaluation.y)
+    post.patch_covariance = patch_covariance(lin, result.evaluation.y, profile.problem.states.count)
     return post
 
 
@@ -268,7 +268,7 @@ def laplace(lin: Linearisation, labels, s, is_E, noise: float | None = None, flo
                      np.asarray(is_E, bool), separable, residual_std)
 
 
-def patch_covariance(lin: Linearisation, positions: np.ndarray) -> np.ndarray:
+def patch_covariance(lin: Linearisation, positions: np.ndarray, states: int = 1) -> np.ndarray:
     """The covariance of s from the residual itself, robust to errors correlated in space
     (a cluster-robust sandwich): the first-order pull of residual row l on s is
     S^-1 b_l e_l, b_l the row of A_s with the controls profiled out; summed over spatial
@@ -279,10 +279,11 @@ def patch_covariance(lin: Linearisation, positions: np.ndarray) -> np.ndarray:
     At the optimum the pulls cancel overall; how strongly whole patches disagree is what
     a structured residual (a target's staircase or remeshing, a source mesh too coarse)
     does to the answer -- which the Laplace covariance, counting every row as independent
-    noise, cannot see."""
+    noise, cannot see. Several states' rows (``states`` equal blocks) are patched each on
+    its own: one segmentation's errors do not correlate with another's."""
     B, S_inv, known = _profiled(lin)
     gdim = positions.shape[1]
-    patch = spatial_patches(positions, max(2, round(np.sqrt(len(positions)))))[np.arange(len(lin.residual)) // gdim]
+    patch = state_patches(positions, states)[np.arange(len(lin.residual)) // gdim]
     count = int(patch.max()) + 1
     pulls = np.stack([np.bincount(patch, B[:, k] * lin.residual, minlength=count) for k in range(B.shape[1])], axis=1)
     out = known @ (pulls.T @ pulls) @ known * count / (count - 1)
@@ -306,6 +307,16 @@ def offset_shift(lin: Linearisation, de: np.ndarray) -> np.ndarray:
     B, S_inv, known = _profiled(lin)
     ds = -known @ (B.T @ de)
     return np.where(np.isfinite(np.diag(S_inv)), ds, np.nan)  # an undetermined constant: no first order
+
+
+def state_patches(positions: np.ndarray, states: int) -> np.ndarray:
+    """A patch index per row: each state's block of rows bisected into ~sqrt(its rows) patches."""
+    out, first = [], 0
+    for block in np.split(positions, states):
+        patch = spatial_patches(block, max(2, round(np.sqrt(len(block)))))
+        out.append(patch + first)
+        first += int(patch.max()) + 1
+    return np.concatenate(out)
 
 
 def spatial_patches(points: np.ndarray, count: int) -> np.ndarray:

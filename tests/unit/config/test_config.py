@@ -251,8 +251,9 @@ def test_defaults_filled():
         "materials": {"a": {"E": {"value": 1.0, "estimate": False, "bounds": None},
                             "nu": {"value": 0.3, "estimate": False, "bounds": None}}},
         "boundary": {"fixed": ["f"], "loaded": [], "matched": [], "match_nodes": "auto",
-                     "displacement": {}, "load": {"l": [0.0, 1.0]}, "pressure": {}},
+                     "displacement": {}, "load": {"l": [0.0, 1.0]}, "pressure": {}, "measured_force": {}},
         "target": None,
+        "states": None,
         "optimizer": {"inner": "auto", "inner_maxiter": 400, "outer_maxiter": 40, "outer_xtol": 1e-3, "scan": 5,
                       "inner_tol": 1e-6, "full_gn_limit": 1500, "anchor": 1e-4, "surrogate": True,
                       "allow_undetermined": False},
@@ -460,7 +461,9 @@ def test_scene_spec_defaults(tmp_path):
 def test_target_forms():
     landmarks_only, _ = problem({"target": {"surface": DROP, "landmarks": "l.csv"}})
     assert landmarks_only["target"] == {"surface": None, "surfaces": None, "landmarks": "l.csv",
-                                        "landmark_weight": None, "landmark_noise": None, "labels": None, "noise": None, "smooth": "auto"}
+                                        "landmark_weight": None, "landmark_noise": None, "labels": None, "noise": None,
+                                        "smooth": "auto", "displacement": None, "displacement_noise": None,
+                                        "displacement_correlation": None}
     per_group, _ = problem({"target": {"surface": DROP, "surfaces": {"outline": "o.vtp"}, "landmarks": "l.csv",
                                        "landmark_weight": 2, "noise": 0.05}})
     assert per_group["target"]["surfaces"] == {"outline": "o.vtp"} and per_group["target"]["landmark_weight"] == 2.0

@@ -581,7 +581,7 @@ def test_gauss_newton_stops_on_its_models_promise():
     rng = np.random.default_rng(0)
     points, J = rng.standard_normal((12, 3)), rng.standard_normal((12, 3, 4))
     misfit = _Quadratic(points + rng.standard_normal((12, 3)))
-    problem = SimpleNamespace(misfit=misfit, observation=SimpleNamespace(points=points))
+    problem = SimpleNamespace(misfit=misfit, points=points)
     q0 = rng.standard_normal(4)
     fit = GaussNewton(problem, q0, anchor=0.1, maxiter=50, tol=1e-12).fit(J)
     flat = J.reshape(-1, 4)
