@@ -798,19 +798,28 @@ def _ripple(d: np.ndarray, amplitude: float, wavelength: float = 6.0) -> np.ndar
     return amplitude * np.array([np.sin(y + 0.3) * np.cos(z), np.sin(z + 0.5) * np.cos(x), np.sin(x + 0.7) * np.cos(y)])
 
 
-def phantom_motions(organs: dict, ripple: float = 0.15) -> dict:
-    """Prescribed wall motions (group -> u(x)): bones fixed; the bladder inflated 10 %
-    about its centre and shifted up; the rectum inflated 15 % about its axis (not along
-    it) and pushed forward; both with a ripple of ``ripple`` cm."""
+# The walls' motion per state: (bladder inflation, its shift; rectum inflation, its shift).
+# "filled": the bladder filled and the rectum distended; "emptied": the bladder emptied
+# and sunk, the rectum collapsed and pulled back -- another load on the same body.
+PHANTOM_STATES = {"filled": (0.1, (0.05, 0.0, 0.15), 0.15, (0.0, -0.1, 0.05)),
+                  "emptied": (-0.08, (-0.05, 0.05, -0.12), -0.1, (0.02, 0.08, -0.04))}
+
+
+def phantom_motions(organs: dict, ripple: float = 0.15, state: str = "filled") -> dict:
+    """Prescribed wall motions (group -> u(x)): bones fixed; in the "filled" state the
+    bladder inflated 10 % about its centre and shifted up, the rectum inflated 15 % about
+    its axis (not along it) and pushed forward ("emptied": PHANTOM_STATES); both with a
+    ripple of ``ripple`` cm."""
     bladder = np.asarray(organs["bladder"]["center"], float)[:, None]
     axis = np.asarray(organs["rectum"]["center"], float)[:, None]
+    grow_b, shift_b, grow_r, shift_r = PHANTOM_STATES[state]
 
     def bladder_motion(x):
-        return 0.1 * (x - bladder) + np.array([[0.05], [0.0], [0.15]]) + _ripple(x - bladder, ripple)
+        return grow_b * (x - bladder) + np.array(shift_b)[:, None] + _ripple(x - bladder, ripple)
 
     def rectum_motion(x):
         radial = (x - axis) * np.array([[1.0], [1.0], [0.0]])
-        return 0.15 * radial + np.array([[0.0], [-0.1], [0.05]]) + _ripple(x - axis, ripple)
+        return grow_r * radial + np.array(shift_r)[:, None] + _ripple(x - axis, ripple)
 
     return {"bones": constant_motion((0.0, 0.0, 0.0)), "bladder": bladder_motion, "rectum": rectum_motion}
 
@@ -829,30 +838,54 @@ def phantom_surfaces(organs: dict, spacing: float) -> dict:
 
 def phantom(out, prostate_E: float, seed: int = 0, E: float = 10.0, nu: float = 0.4, prostate_nu: float = 0.4,
             ripple: float = 0.15, walls: float = 0.25, prostate: float = 0.15, far: float = 1.2,
-            spacing: float = 0.03) -> dict:
+            spacing: float = 0.03, state: str = "filled", field: int = 0) -> dict:
     """The phantom of ``phantom_organs(seed)`` solved by scikit-fem: bones fixed,
     bladder and rectum walls moved by ``phantom_motions``, skin free; tissue (E, nu),
     prostate (prostate_E, prostate_nu). Files: ``bladder``, ``prostate_surface``,
     ``rectum`` (the displaced exact surfaces, triangles about ``spacing`` apart) and
-    ``fiducials`` (landmark CSV of 4 points inside the prostate)."""
+    ``fiducials`` (landmark CSV of 4 points inside the prostate), ``forces`` (JSON: the
+    total force through each moved wall) and, with ``field`` > 0, ``field`` (a .vtp of
+    that many of the truth mesh's vertices, each with its exact displacement) -- in ``state``
+    (PHANTOM_STATES)."""
     from fenics_elasto.mesh.builtin import phantom_organs
 
     params = {"prostate_E": prostate_E, "seed": seed, "E": E, "nu": nu, "prostate_nu": prostate_nu, "ripple": ripple,
-              "walls": walls, "prostate": prostate, "far": far, "spacing": spacing}
+              "walls": walls, "prostate": prostate, "far": far, "spacing": spacing, "state": state, "field": field}
 
     def make(folder):
         organs = phantom_organs(seed)
         model = phantom_model(seed, walls, prostate, far)
-        u = model.solve({"tissue": (E, nu), "prostate": (prostate_E, prostate_nu)}, phantom_motions(organs, ripple))
+        materials = {"tissue": (E, nu), "prostate": (prostate_E, prostate_nu)}
+        u = model.solve(materials, phantom_motions(organs, ripple, state))
         files = {}
         for name, (points, triangles) in phantom_surfaces(organs, spacing).items():
             files[name] = write_triangles(folder / f"target_{name}.vtp", points + evaluate(model.basis, u, points), triangles)
         p = organs["prostate"]
         inside = np.asarray(p["center"]) + FIDUCIALS * np.asarray(p["radii"])
         files["fiducials"] = write_landmarks(folder / "fiducials.csv", inside, inside + evaluate(model.basis, u, inside))
+        reactions = model.stiffness(materials) @ u
+        forces = {g: [float(reactions[model.basis.get_dofs(model.fe.facets[g]).all(f"u^{c + 1}")].sum()) for c in range(3)]
+                  for g in ("bladder", "rectum")}
+        files["forces"] = folder / "forces.json"
+        files["forces"].write_text(json.dumps(forces))
+        if field:
+            files["field"] = write_field(folder / "field.vtp", model, u, field)
         return files
 
     return cached(out, "phantom", params, make)
+
+
+def write_field(path: Path, model: Elasticity, u: np.ndarray, count: int) -> Path:
+    """``count`` vertices of the truth's mesh (random, fixed seed) with their displacement."""
+    import pyvista as pv
+
+    nodes = model.basis.doflocs[:, model.basis.nodal_dofs[0]].T  # the mesh vertices
+    pick = np.random.default_rng(0).choice(len(nodes), min(count, len(nodes)), replace=False)
+    values = np.stack([u[model.basis.nodal_dofs[c]] for c in range(3)], axis=1)
+    cloud = pv.PolyData(nodes[pick])
+    cloud["displacement"] = values[pick]
+    cloud.save(path)
+    return path
 
 
 # --------------------------------------------------------------------------- problem files

@@ -117,6 +117,7 @@ def _check_states(states: list, where: Where) -> list:
 STATE = Table({  # one state of the body: its own target and unknown forces, the materials shared
     "name": Key(String("a state name"), REQUIRED),
     "target": Key(TARGET, REQUIRED),
+    "measured_force": Key(Named(MEASURED_FORCE, "GROUP = {value, noise}"), {}),
 })
 
 OPTIMIZER = Table({
@@ -214,8 +215,13 @@ def _command_checks(config: dict, command: str, where: Where) -> list[str]:
             where.at("target").fail("missing; estimate needs surface, surfaces, landmarks or displacement "
                                     "(or [[states]], each with its target)", table=True)
         if config["states"] is not None and boundary["measured_force"]:
-            where.at("boundary").at("measured_force").fail("is not yet taken with [[states]]: give one state's "
-                                                           "target in [target] to use a measured force")
+            where.at("boundary").at("measured_force").fail("with [[states]], a force is measured in one state: "
+                                                           "give it as that state's measured_force")
+        for i, state in enumerate(config["states"] or []):
+            unloaded = [g for g in state["measured_force"] if g not in boundary["loaded"]]
+            if unloaded:
+                where.at("states").at(i).at("measured_force").at(unloaded[0]).fail(
+                    "a measured force acts through a loaded group, and this one is not in boundary.loaded")
         if config["reduction"] is not None and config["optimizer"]["inner"] not in ("auto", "gauss-newton"):
             where.at("optimizer").at("inner").fail(
                 f'reduced bases need "gauss-newton" (or "auto"), got {show(config["optimizer"]["inner"])}')

@@ -36,12 +36,20 @@ class MeasuredForce:
     group: str
     value: np.ndarray
     noise: float
+    state: str = ""  # with [[states]]: the state it was measured in
+
+    @property
+    def label(self) -> str:
+        return f"{self.state}.{self.group}" if self.state else self.group
 
 
 def measured_forces(scene) -> list[MeasuredForce]:
-    """[boundary.measured_force] (groups checked loaded by the schema)."""
-    table = scene.config["boundary"].get("measured_force") or {}
-    return [MeasuredForce(g, np.asarray(f["value"], float), float(f["noise"])) for g, f in table.items()]
+    """[boundary.measured_force], or each [[states]] entry's measured_force (groups
+    checked loaded by the schema); every one scales the same E."""
+    tables = [("", scene.config["boundary"].get("measured_force") or {})]
+    tables += [(state["name"], state.get("measured_force") or {}) for state in scene.config.get("states") or []]
+    return [MeasuredForce(g, np.asarray(f["value"], float), float(f["noise"]), state)
+            for state, table in tables for g, f in table.items()]
 
 
 def with_force_reference(scene):
@@ -73,11 +81,11 @@ class Scale:
 
 
 def force_scale(predicted: dict[str, np.ndarray], measured: list[MeasuredForce]) -> Scale:
-    """The least-squares scale s of the predicted forces onto the measured ones."""
-    a = sum(float(predicted[m.group] @ predicted[m.group]) / m.noise**2 for m in measured)
-    b = sum(float(predicted[m.group] @ m.value) / m.noise**2 for m in measured)
+    """The least-squares scale s of the predicted forces (by MeasuredForce.label) onto the measured ones."""
+    a = sum(float(predicted[m.label] @ predicted[m.label]) / m.noise**2 for m in measured)
+    b = sum(float(predicted[m.label] @ m.value) / m.noise**2 for m in measured)
     s = b / a
-    chi2 = sum(float(np.sum((s * predicted[m.group] - m.value) ** 2)) / m.noise**2 for m in measured)
+    chi2 = sum(float(np.sum((s * predicted[m.label] - m.value) ** 2)) / m.noise**2 for m in measured)
     return Scale(s, float(1.0 / np.sqrt(a)), chi2, sum(len(m.value) for m in measured) - 1)
 
 
@@ -86,7 +94,10 @@ def apply_measured_force(problem, result, measured: list[MeasuredForce]) -> None
     result.json's materials, uncertainty and ``measured_force``; its ``history`` stays the
     fit's, in the reference's units)."""
     record = result.record
-    predicted = group_forces(problem, result.forces)
+    predicted = {}
+    for m in measured:  # each measured force against its state's forces
+        forces = result.state_forces[m.state] if m.state else result.forces
+        predicted[m.label] = group_forces(problem, forces)[m.group]
     scale = force_scale(predicted, measured)
     s = scale.value
     is_E = problem.params.is_E
@@ -94,6 +105,7 @@ def apply_measured_force(problem, result, measured: list[MeasuredForce]) -> None
                  if isinstance(entry, dict) and "std" in entry}
     result.theta = np.where(is_E, result.theta * s, result.theta)
     result.forces = result.forces * s
+    result.state_forces = {name: forces * s for name, forces in result.state_forces.items()}
     for name, values in record["materials"].items():
         values["E"] = float(values["E"] * s)
         label = f"{name}.E"
@@ -111,7 +123,7 @@ def apply_measured_force(problem, result, measured: list[MeasuredForce]) -> None
         result.theta = np.concatenate([[record["materials"][reference]["E"]], result.theta])
     record["measured_force"] = {
         "scale": s, "scale_std": scale.std, "chi2": scale.chi2, "dof": scale.dof, "reference": reference,
-        "groups": {m.group: {"measured": m.value.tolist(), "predicted": (s * predicted[m.group]).tolist(),
+        "groups": {m.label: {"measured": m.value.tolist(), "predicted": (s * predicted[m.label]).tolist(),
                              "noise": m.noise} for m in measured}}
     log.info(f"measured force: every E and force scaled by {s:.4g} ± {scale.std:.2g} "
              f"(chi2 {scale.chi2:.3g} on {scale.dof} dof)")

@@ -13,7 +13,21 @@ import pytest
 from fenics_elasto.app.cli import main
 from independent import INCLUSION_TOP, inclusion, inclusion_displacement
 
-pytestmark = pytest.mark.xdist_group("more_than_surfaces")
+
+PRESSED = (0.2, 0.0, -0.4, 0.0)  # the second state's top motion: shifted and pressed
+
+
+@pytest.fixture(scope="module")
+def two_cases(tmp_path_factory):
+    """The inclusion in two states (the default top motion, "stretched", and PRESSED) and
+    reduced bases trained once on the source (60 synthetic examples, rank 24)."""
+    folder = tmp_path_factory.mktemp("two_cases")
+    case_a = inclusion(folder / "a", RATIO, source_size=SOURCE_SIZE)
+    case_b = inclusion(folder / "b", RATIO, top=PRESSED, source_size=SOURCE_SIZE)
+    bases = folder / "bases.npz"
+    assert main(["train", str(case_a["problem"]), "--synthetic", "60", "--rank", "24", "--out", str(bases)]) == 0
+    return case_a, case_b, bases
+
 
 MPI_STATES = Path(__file__).resolve().parents[1] / "mpi" / "states.py"
 RATIO, E_TRUE = 4.0, 40.0
@@ -134,19 +148,17 @@ def test_bad_extra_data_is_one_line(tmp_path, capsys, case, expected):
     assert len(err) == 1 and expected in err[0] and "Traceback" not in err[0], err
 
 
-def test_two_states_narrow_the_interval(tmp_path):
+def test_two_states_narrow_the_interval(tmp_path, two_cases):
     """Two states of one body -- the top moved two ways (stretched and bent; shifted and
     pressed), scikit-fem's outline of each as the target, the inclusion unseen -- with
     one set of reduced bases: the pair's sigma at least 1.5x smaller than the first
     state's alone, its interval holding the truth, each state reported with its own
     distances and forces; in at most 2.2x the single state's time (not asserted: timed
     in benchmarks/, measured 3.3 s vs 2.1 s)."""
-    case_a = inclusion(tmp_path / "a", RATIO, source_size=SOURCE_SIZE)
-    case_b = inclusion(tmp_path / "b", RATIO, top=(0.2, 0.0, -0.4, 0.0), source_size=SOURCE_SIZE)
+    case_a, case_b, bases = two_cases
     problem = case_a["problem"]
     outline = lambda case: f"{{surfaces={{outline='{case['outline']}'}}}}"  # noqa: E731
-    assert main(["train", str(problem), "--synthetic", "60", "--rank", "24", "--out", str(tmp_path / "bases.npz")]) == 0
-    common = ["boundary.matched=['outline']", f"reduction={{bases='{tmp_path / 'bases.npz'}'}}"]
+    common = ["boundary.matched=['outline']", f"reduction={{bases='{bases}'}}"]
     one = estimate(tmp_path, "one", problem, *common, f"target={outline(case_a)}")
     two = estimate(tmp_path, "two", problem, *common,
                    f"states=[{{name='stretched', target={outline(case_a)}}}, {{name='pressed', target={outline(case_b)}}}]")
@@ -161,9 +173,9 @@ def test_two_states_narrow_the_interval(tmp_path):
     scene = fe.load_scene(problem, overrides={"boundary.matched": ["outline"]})  # the same from Python
     states = {"stretched": fe.Target(surfaces={"outline": case_a["outline"]}),
               "pressed": fe.Target(surfaces={"outline": case_b["outline"]})}
-    api = fe.estimate(scene, states, bases=tmp_path / "bases.npz")
+    api = fe.estimate(scene, states, bases=bases)
     assert abs(api.values["inclusion.E"] / two["materials"]["inclusion"]["E"] - 1) < 1e-6, api.values
-    for name, top in (("stretched", INCLUSION_TOP), ("pressed", (0.2, 0.0, -0.4, 0.0))):  # each state its own forces
+    for name, top in (("stretched", INCLUSION_TOP), ("pressed", PRESSED)):  # each state its own forces
         state = two["states"][name]
         assert state["distances"]["surface"]["rms"] < 1e-3, state
         total = np.loadtxt(tmp_path / "two" / state["forces"], delimiter=",", skiprows=1)[:, 2:].sum(axis=0)
@@ -172,17 +184,14 @@ def test_two_states_narrow_the_interval(tmp_path):
         assert np.linalg.norm(total - truth) < 0.05 * np.linalg.norm(truth), (name, total, truth)
 
 
-def test_two_states_under_mpi_give_the_serial_answer(tmp_path):
+def test_two_states_under_mpi_give_the_serial_answer(tmp_path, two_cases):
     """The same two-state reduced estimate on 1 and 2 ranks: the same E and each state's
     forces (the observation's rows, the stacked controls and the surrogate's refinement
     along both states' controls are all rank-independent)."""
     from conftest import run_mpi_script
 
-    case_a = inclusion(tmp_path / "a", RATIO, source_size=0.35)
-    case_b = inclusion(tmp_path / "b", RATIO, top=(0.2, 0.0, -0.4, 0.0), source_size=0.35)
-    problem, bases = case_a["problem"], tmp_path / "bases.npz"
-    assert main(["train", str(problem), "--synthetic", "30", "--rank", "12", "--out", str(bases),
-                 "--set", "boundary.matched=['outline']"]) == 0
+    case_a, case_b, bases = two_cases
+    problem = case_a["problem"]
     states = (f"[{{name='a', target={{surfaces={{outline='{case_a['outline']}'}}}}}}, "
               f"{{name='b', target={{surfaces={{outline='{case_b['outline']}'}}}}}}]")
     overrides = json.dumps(["boundary.matched=['outline']", f"states={states}"])
@@ -193,3 +202,28 @@ def test_two_states_under_mpi_give_the_serial_answer(tmp_path):
     assert np.abs(runs[2]["theta"] - runs[1]["theta"]).max() < 1e-8 * runs[1]["theta"].max()
     for name in ("forces_a", "forces_b"):
         assert np.abs(runs[2][name] - runs[1][name]).max() < 1e-7 * np.abs(runs[1][name]).max(), name
+
+
+def test_a_force_measured_in_one_state_scales_every_state(tmp_path, two_cases):
+    """Two states, every E estimated, the top's force measured (2 %) in the pressed state
+    only: both E absolute within 3 %, and both states' forces scaled with them (the
+    stretched state's total force, never measured, is scikit-fem's within 3 %)."""
+    from independent import inclusion_force
+
+    case_a, case_b, bases = two_cases
+    problem = case_a["problem"]
+    force = inclusion_force(RATIO, PRESSED)
+    noise = 0.02 * float(np.linalg.norm(force))
+    states = (f"[{{name='stretched', target={{surfaces={{outline='{case_a['outline']}'}}}}}}, "
+              f"{{name='pressed', target={{surfaces={{outline='{case_b['outline']}'}}}}, "
+              f"measured_force={{top={{value={force.tolist()}, noise={noise}}}}}}}]")
+    result = estimate(tmp_path, "forced", problem, "boundary.matched=['outline']", f"reduction={{bases='{bases}'}}",
+                      "materials.matrix.E={estimate=true, initial=5.0, bounds=[0.5, 100.0]}", f"states={states}")
+    print(result["measured_force"], result["materials"])
+    for region, E_true in {"matrix": 10.0, "inclusion": E_TRUE}.items():
+        E = result["materials"][region]["E"]
+        low, high = result["uncertainty"][f"{region}.E"]["ci95"]
+        assert abs(E / E_true - 1) < 0.03 and low < E_true < high, (region, E, low, high)
+    stretched = np.loadtxt(tmp_path / "forced" / "forces_stretched.csv", delimiter=",", skiprows=1)[:, 2:].sum(axis=0)
+    truth = inclusion_force(RATIO)
+    assert np.linalg.norm(stretched - truth) < 0.03 * np.linalg.norm(truth), (stretched, truth)
