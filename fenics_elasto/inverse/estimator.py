@@ -164,10 +164,10 @@ class Estimator:
                      f"material values on the surrogate (inner: {self.inner_name})")
             self.profile.solve(self.params.initial, "start")
             self._held.enter_context(self.profile.borrowing())  # later solves on its factors where near enough
-            start, scanned = surrogate_scan(self.surrogate, points)
+            start, scanned, known = surrogate_scan(self.surrogate, points)
             self._check_identifiable([self.profile.best().value] + scanned)
             self.outer_iterations = minimize_on_surrogate(self.profile, self.surrogate, xtol, self.options.outer_maxiter,
-                                                          start)
+                                                          start, known, smooth=not self.problem.misfit.rough())
         self.polish()
 
     def _check_identifiable(self, scanned: list[float]) -> None:
