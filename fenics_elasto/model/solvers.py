@@ -664,6 +664,11 @@ class WarmStart:
         a = V @ ((V.T @ self.comm.allreduce(self.S.T @ B, op=MPI.SUM)) / lam[keep, None])
         return self.S @ a
 
+    def seed(self, X: np.ndarray) -> None:
+        """Guesses from span(X) (owned rows), whose K X is not known: e.g. a lower-degree
+        solution interpolated, which leaves CG only the correction to find."""
+        self.S, self.KS, self.state = np.array(X, float), None, None
+
     def remember(self, K: PETSc.Mat, X: np.ndarray, B: np.ndarray) -> None:
         """Keep the solutions X of K X = B (newest first, up to ``capacity`` columns)."""
         self.capacity = min(max(self.capacity, X.shape[1]), WARM_COLUMNS[1])
