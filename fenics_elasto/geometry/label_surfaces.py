@@ -86,15 +86,17 @@ def smoothed(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     return np.asarray(result.points, dtype=float)
 
 
-def coarsened(points: np.ndarray, triangles: np.ndarray, organ_size: float) -> tuple[np.ndarray, np.ndarray]:
-    """The surface decimated to edges of about organ_size / 2 where it is finer than
-    that (volume-preserving quadric decimation); unchanged where it is not."""
+def coarsened(points: np.ndarray, triangles: np.ndarray, organ_size: float,
+              beyond: float = 1.5) -> tuple[np.ndarray, np.ndarray]:
+    """The surface decimated to edges of about organ_size / 2 where it has more than
+    ``beyond`` times the triangles that takes (volume-preserving quadric decimation);
+    unchanged where it has not."""
     import pyvista as pv
 
     a, b, c = (points[triangles[:, k]] for k in range(3))
     area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1).sum()
     wanted = area / (TRIANGLE_AREA * (organ_size / EDGES_PER_ORGAN_SIZE) ** 2)
-    if len(triangles) < 1.5 * wanted:
+    if len(triangles) < beyond * wanted:
         return points, triangles
     surface = pv.PolyData.from_regular_faces(points, triangles)
     result = surface.decimate(1 - wanted / len(triangles), volume_preservation=True).clean()

@@ -12,10 +12,11 @@ line -- in this order:
 3. orient every component consistently (libigl's BFS), fill each hole whose radius is
    at most 5 % of the surface's size with a fan from the hole's centre, and turn each
    component's normals outward (positive enclosed volume);
-and refuses, with one line naming the file and the defect, what it cannot make a
-closed surface: an edge shared by more than two triangles, a larger opening, a
-non-orientable piece, a surface that passes through itself (found from the winding
-number just inside and outside of every triangle: 1 and 0 on a simple closed surface).
+and what it cannot make a closed surface in place -- an edge shared by more than two
+triangles, a larger opening, a surface that touches or passes through itself (found
+from the winding number just inside and outside of every triangle: 1 and 0 on a simple
+closed surface) -- it rebuilds from the region the surface encloses (rebuild.py),
+saying what that changed; it refuses only what encloses nothing.
 
 Libraries: pyvista/VTK (BSD-3) to read any surface format and to cut the outer
 surface along patch planes, libigl (MPL-2) for duplicates, orientation, winding
@@ -212,8 +213,10 @@ def _fill_holes(points, triangles, label):
     radius = np.zeros(holes)
     np.maximum.at(radius, hole_of_edge, np.linalg.norm(points[rim[:, 0]] - centre[hole_of_edge], axis=1))
     limit = HOLE_FRACTION * np.linalg.norm(np.ptp(points[np.unique(triangles)], axis=0))
-    require(radius.max() <= limit, f"{label}: not a closed surface: an opening of radius {radius.max():.3g} "
-            f"at {_point(centre[np.argmax(radius)])} (openings up to {limit:.3g}, 5 % of its size, are filled)")
+    if radius.max() > limit:
+        defect = (f"an opening of radius {radius.max():.3g} at {_point(centre[np.argmax(radius)])} (openings up to "
+                  f"{limit:.3g}, 5 % of its size, are filled in place)")
+        raise NotClosed(f"{label}: not a closed surface: {defect}", defect)
     fan = np.c_[rim[:, 1], rim[:, 0], n + hole_of_edge]
     log.info(f"{label}: filled {holes} hole(s) (largest radius {radius.max():.3g}, {len(rim)} rim edges)")
     return np.vstack([points, centre]), np.vstack([triangles, fan])
@@ -250,10 +253,46 @@ def self_intersecting(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     return bad
 
 
+class NotClosed(UserError):
+    """A surface that the repairs in place cannot make closed; ``defect`` says why."""
+
+    def __init__(self, message: str, defect: str):
+        super().__init__(message)
+        self.defect = defect
+
+
 def closed_shells(path: Path, label: str, role: str, name: str) -> list[Shell]:
-    """The file's closed components, repaired (see the module docstring), outward."""
+    """The file's closed components, repaired or rebuilt (see the module docstring), outward."""
     points, triangles = read_triangles(path, label)
-    return shells_of(points, triangles, label, role, name)
+    return solid_shells(points, triangles, label, role, name)
+
+
+def solid_shells(points: np.ndarray, triangles: np.ndarray, label: str, role: str, name: str) -> list[Shell]:
+    """``shells_of``, or where the surface cannot be closed in place, the shells of the
+    surface rebuilt from what it encloses (rebuild.py)."""
+    from fenics_elasto.mesh.rebuild import rebuilt
+
+    try:
+        shells = shells_of(points, triangles, label, role, name)
+        crossing = _crossing_pieces(shells)
+        if crossing:
+            raise NotClosed(f"{label}: {crossing}", crossing)
+        return shells
+    except NotClosed as err:
+        return shells_of(*rebuilt(points, triangles, label, err.defect), label, role, name)
+
+
+def _crossing_pieces(shells: list[Shell]) -> str | None:
+    """Pieces of one file that pass through each other (some of one's vertices inside the
+    other, some not; a piece wholly inside another is nested, not crossing), said; or None."""
+    import igl
+
+    for i, a in enumerate(shells):
+        for b in shells[i + 1:]:
+            inside = np.abs(igl.fast_winding_number(b.points, b.triangles, a.points)) >= 0.5
+            if inside.any() and not inside.all():
+                return f"two of its pieces pass through each other ({int(inside.sum())} vertices of one inside the other)"
+    return None
 
 
 def shells_of(points: np.ndarray, triangles: np.ndarray, label: str, role: str, name: str) -> list[Shell]:
@@ -263,22 +302,24 @@ def shells_of(points: np.ndarray, triangles: np.ndarray, label: str, role: str, 
     require(len(triangles) > 0, f"{label}: no triangles left after dropping collapsed ones")
     triangles = _drop_specks(points, triangles, label)
     edges, _, count = edge_use(triangles)
-    require(count.max() <= 2, f"{label}: {np.sum(count > 2)} edges are shared by more than two triangles "
-            f"(non-manifold, e.g. near {_point(points[edges[np.argmax(count)]].mean(axis=0))}); "
-            "cannot make it a closed surface")
+    if count.max() > 2:
+        defect = f"{np.sum(count > 2)} edges are shared by more than two triangles (non-manifold)"
+        raise NotClosed(f"{label}: {defect}, e.g. near {_point(points[edges[np.argmax(count)]].mean(axis=0))}; "
+                        "cannot make it a closed surface", defect)
     triangles = _orient_consistently(triangles, label)
     points, triangles = _fill_holes(points, triangles, label)
     _, _, count = edge_use(triangles)
-    require((count == 2).all(),
-            f"{label}: cannot be made a closed surface ({np.sum(count != 2)} edges not shared by two triangles)")
+    if not (count == 2).all():
+        defect = f"{np.sum(count != 2)} edges are not shared by two triangles (an opening too wide to fill)"
+        raise NotClosed(f"{label}: cannot be made a closed surface ({defect})", defect)
     triangles, component = _orient_outward(points, triangles, label)
     shells = [_shell(role, name, label, points, triangles[component == c]) for c in range(component.max() + 1)]
     for shell in shells:  # one by one: a piece inside another sees winding number 2, rightly
         crossing = self_intersecting(shell.points, shell.triangles)
         if crossing.any():
             where = shell.points[shell.triangles[crossing][0]].mean(axis=0)
-            raise UserError(f"{label}: the surface passes through itself ({crossing.sum()} triangles, e.g. near "
-                            f"{_point(where)}); cannot use it")
+            defect = f"the surface passes through itself ({crossing.sum()} triangles)"
+            raise NotClosed(f"{label}: {defect}, e.g. near {_point(where)}; cannot use it", defect)
     return shells
 
 
