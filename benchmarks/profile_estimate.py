@@ -37,8 +37,7 @@ GROUPS = [
     ("profile-likelihood interval", [("inverse/uncertainty/answer.py", "profile_likelihood_interval")]),
     ("bases' missing-motion check", [("inverse/reduction/bases.py", "missing_wall_motion")]),
     ("reading the scene and target, building the problem", [("app/api.py", "inverse_problem")]),
-    ("writing fields, surfaces, pictures", [("app/commands.py", "write_estimate")]),
-]
+]  # the groups overlap (closest points are part of the fits); files are written by a child process
 
 
 def cumulative(stats: pstats.Stats, path: str, name: str) -> float:

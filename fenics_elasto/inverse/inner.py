@@ -118,8 +118,12 @@ class GaussNewton:
         return LinearFit(q, phi, prior, residual, nit, converged)
 
     def _curvature_rows(self, J, y) -> np.ndarray:
-        """sqrt(w) C J: rows whose Gram matrix is the Gauss-Newton Hessian of the data term."""
-        return np.einsum("lkd,ldr->lkr", self.misfit.gauss_newton_rows(y), J).reshape(-1, J.shape[2])
+        """sqrt(w) C J: rows whose Gram matrix is the Gauss-Newton Hessian of the data term,
+        the zero rows left out (a point closest to a face's interior has one direction of
+        gdim: at rank 240 the Gram matrix of all rows was most of a fit's dense algebra)."""
+        C = self.misfit.gauss_newton_rows(y)
+        point, row = np.nonzero(np.any(C != 0.0, axis=2))
+        return np.einsum("md,mdr->mr", C[point, row], J[point])
 
     def solve(self, theta, response, basis) -> InnerResult:
         """The inner optimum at theta for the response J = ``response(theta)``, evaluated in full."""
