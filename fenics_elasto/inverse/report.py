@@ -54,7 +54,10 @@ def fit_of_bases(estimator: Estimator, theta, best: InnerResult) -> dict | None:
     missing = missing_wall_motion(estimator.problem, estimator.basis, theta, best.evaluation, lin)
     params = estimator.params
     shift = np.where(params.is_E, np.expm1(missing["shift_s"]), missing["shift_s"])
+    B, _ = lin.profiled()  # what of each constant's effect the forces cannot mimic, per residual row
+    signal = np.sqrt(np.sum(B**2, axis=0) / max(lin.informative, 1)) * np.log1p(SIGNAL_CHANGE)
     return {**fit, "missing_wall_rms": missing["missing_wall_rms"],
+            "signal_rms": {label: float(v) for label, v in zip(params.labels, signal)},
             "shift_if_enriched": {label: float(v) for label, v in zip(params.labels, shift)},
             "shift_if_enriched_s": [float(v) for v in missing["shift_s"]]}
 
@@ -77,6 +80,7 @@ def run_warnings(estimator: Estimator, theta, interrupted: bool, fit=None, post=
 
 
 BIAS_MIN = (0.02, 0.01)  # a shift of log E (about 2 %) or of nu worth a warning, if also above 1 sigma
+SIGNAL_CHANGE = 0.1  # bases_fit.signal_rms: how far the data move, rms, when an E changes by 10 % (forces refitted)
 
 
 def _bias_warnings(params, fit, post) -> list[str]:
