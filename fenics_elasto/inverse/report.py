@@ -49,7 +49,7 @@ def fit_of_bases(estimator: Estimator, theta, best: InnerResult) -> dict | None:
     (reduction.missing_wall_motion; relative for E, absolute for nu)."""
     fit = bases_fit(estimator.basis, np.stack(estimator.problem.states.split(estimator.d0), axis=1))
     lin = estimator.profile.linearisation(best)
-    if fit is None or lin is None or estimator.problem.states.count > 1:  # missing motion: one state's, not yet
+    if fit is None or lin is None:
         return fit
     missing = missing_wall_motion(estimator.problem, estimator.basis, theta, best.evaluation, lin)
     params = estimator.params

@@ -21,6 +21,7 @@ import numpy as np
 
 
 from fenics_elasto.mesh.atlas import atlas_nodes, atlas_order, from_atlas, to_atlas
+from fenics_elasto.model.responses import response_block
 from fenics_elasto.util.errors import UserError, require
 from fenics_elasto.util.logs import log
 from fenics_elasto.geometry.matching import match_surface
@@ -232,25 +233,38 @@ def missing_wall_motion(problem: InverseProblem, W: np.ndarray, theta, evaluatio
     """
     n = problem.observation.node_count
     walls = problem.matched_on_loaded()
-    need = np.zeros((n, problem.gdim))
-    need[walls] = -evaluation.residual[:n][walls]
-    d = problem.forward.on_loaded(problem.observation.node_field(need))
-    d -= W @ (W.T @ d)
-    size = float(np.linalg.norm(d))
-    rms = float(np.sqrt(np.mean(np.sum(need[walls] ** 2, axis=1)))) if walls.any() else 0.0
+    needs, directions = [], []
+    for residual in problem.states.split(evaluation.residual):  # each state's walls, one more mode each
+        need = np.zeros((n, problem.gdim))
+        need[walls] = -residual[:n][walls]
+        d = problem.forward.on_loaded(problem.observation.node_field(need))
+        d -= W @ (W.T @ d)
+        size = float(np.linalg.norm(d))
+        needs.append(need[walls])
+        directions.append(d / size if size > 0 else d)
+    rms = float(np.sqrt(np.mean(np.sum(np.concatenate(needs) ** 2, axis=1)))) if walls.any() else 0.0
     shift = np.zeros(lin.A_s.shape[1])
-    direction = d / size if size > 0 else d
-    if size > 0:
-        J = problem.response(theta, direction[:, None], rtol=DIAGNOSTIC_RTOL)
+    if any(np.any(d) for d in directions):
+        J = np.concatenate([_state_column(problem, theta, d, s) for s, d in enumerate(directions)], axis=2)
         rows = problem.misfit.statistical_rows(evaluation.y, evaluation.residual)  # as the linearisation's
-        a = np.einsum("lkd,ldr->lkr", rows, J).reshape(len(lin.residual), 1)
+        a = np.einsum("lkd,ldr->lkr", rows, J).reshape(len(lin.residual), -1)
         A = np.hstack([lin.A_q, a, lin.A_s])
-        p = lin.A_q.shape[1] + 1
+        extra = a.shape[1]
+        p = lin.A_q.shape[1] + extra
         H = A.T @ A + np.diag(np.r_[np.full(p, lin.prior), np.zeros(lin.A_s.shape[1])])
         g = np.zeros(len(H))
-        g[p - 1] = float(a[:, 0] @ lin.residual)
+        g[p - extra:p] = a.T @ lin.residual
         shift = -np.linalg.lstsq(H, g, rcond=None)[0][p:]
-    return {"missing_wall_rms": rms, "shift_s": shift, "direction": direction}
+    return {"missing_wall_rms": rms, "shift_s": shift, "direction": directions[0]}
+
+
+def _state_column(problem: InverseProblem, theta, d: np.ndarray, state: int) -> np.ndarray:
+    """(S n, gdim, 1): the observed response to one more wall mode of one state's, zero
+    on the other states' rows."""
+    rows = problem.observation.rows(response_block(problem.forward, theta, d[:, None], DIAGNOSTIC_RTOL))
+    out = np.zeros((problem.states.count * len(rows),) + rows.shape[1:])
+    out[state * len(rows):(state + 1) * len(rows)] = rows
+    return out
 
 
 def load_bases(path: Path, problem: InverseProblem, rank: int | None) -> tuple[np.ndarray, float | None]:

@@ -109,13 +109,14 @@ def mesh_shift(problem, lin: Linearisation, theta, evaluation) -> np.ndarray | N
         return None
     start = time.perf_counter()
     E, nu = problem.params.materials(theta)
-    u = evaluation.u
-    finer = higher_degree_solution(scene, E, nu, u)
-    points = problem.observation.points
-    probe = PointProbe(finer.function_space, points)
-    coarse = fem.Function(finer.function_space)
-    coarse.interpolate(u)
-    eps = probe.values(finer.x.array) - probe.values(coarse.x.array)
+    parts = []  # each state's (several states: one solve each, rows one state after another)
+    for u in evaluation.fields or [evaluation.u]:
+        finer = higher_degree_solution(scene, E, nu, u)
+        probe = PointProbe(finer.function_space, problem.observation.points)
+        coarse = fem.Function(finer.function_space)
+        coarse.interpolate(u)
+        parts.append(probe.values(finer.x.array) - probe.values(coarse.x.array))
+    eps = np.concatenate(parts)
     rows = problem.misfit.statistical_rows(evaluation.y, evaluation.residual)
     ds = offset_shift(lin, np.einsum("lkd,ld->lk", rows, eps).ravel())
     log.info(f"the source mesh's own error: a degree-{finer.function_space.element.basix_element.degree} solve "

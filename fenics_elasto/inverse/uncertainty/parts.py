@@ -41,8 +41,6 @@ def mesh_error_wanted(scene) -> bool:
     curved organs put E 2-3 % off (2D estimates on data made elsewhere were within 0.6 %
     without it, the letter's nu within 0.3 %)."""
     mode = (scene.config.get("uncertainty") or {}).get("mesh", "auto")
-    if scene.config.get("states") is not None:  # not yet: its degree-3 solve is one state's
-        return False
     return mode == "on" or (mode == "auto" and scene.gdim == 3)
 
 
