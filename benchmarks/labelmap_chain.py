@@ -1,0 +1,119 @@
+"""Two label maps of one body -> E +- sigma and a picture, in a few commands (issue #34 item 4).
+
+The images are made here so that the truth is known: a rest label map -- a kidney
+(label 1, an ellipsoid on anisotropic, rotated voxels) holding a tumour (label 2, a ball
+4x stiffer) -- and the deformed one, the rest map warped by the displacement that
+`simulate` computes with a probe pressing one side of the kidney, its hilum held. The
+deformed map is resampled on the rest map's grid (x -> label at X with X + u(X) = x, by
+fixed-point steps), as a second scan of the same patient would be. The toolkit made
+this truth, so it checks the chain, not the accuracy (validation.md has those).
+
+The chain a user runs (printed with its output):
+
+    fenics-elasto scene spec.toml --out src                      # rest label map -> mesh
+    fenics-elasto train src/problem.toml --synthetic 60 --rank 24 --out bases.npz
+    fenics-elasto estimate src/problem.toml --out est --set "reduction={bases='bases.npz'}" \\
+        --set "target={labels={image='deformed.nii.gz', outer=[1, 2], tumour_surface=2}}"
+    fenics-elasto render est --out est.png
+
+    .venv/bin/python benchmarks/labelmap_chain.py [--out DIR]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+
+import labelmaps as lm  # noqa: E402
+from fenics_elasto.app.cli import main  # noqa: E402
+
+TRUE_RATIO = 4.0
+SPEC = """units = "mm"
+size = 8.0
+organ_size = 2.5
+[labels]
+image = "rest.nii.gz"
+[body]
+label = [1, 2]
+material = "kidney"
+[regions.tumour]
+label = 2
+[patches.hilum]
+side = {{ point = {hilum}, normal = {hilum_normal} }}
+[patches.probe]
+side = {{ point = {probe}, normal = {probe_normal} }}
+"""
+
+
+def sides() -> dict:
+    """The hilum at one end of the kidney's long axis, the probe at the other's side."""
+    axis = lm.rotation() @ np.array([1.0, 0.0, 0.0])  # the ellipsoid's first axis, in the world
+    side = lm.rotation() @ np.array([0.0, 1.0, 0.0])
+    centre = lm.world_centre()
+    fmt = lambda v: "[" + ", ".join(f"{x:.6g}" for x in v) + "]"  # noqa: E731
+    return {"hilum": fmt(centre - 0.8 * lm.AXES[0] * axis), "hilum_normal": fmt(-axis),
+            "probe": fmt(centre + 0.7 * lm.AXES[1] * side), "probe_normal": fmt(side), "push": -4.5 * side}
+
+
+def warped(labels: np.ndarray, u) -> np.ndarray:
+    """The label map deformed by u: each voxel takes the rest label at X, X + u(X) = x."""
+    from fenics_elasto.model.observation import distances_to_body, probe
+
+    affine = lm.affine()
+    ijk = np.indices(labels.shape).reshape(3, -1).T
+    x = ijk @ affine[:3, :3].T + affine[:3, 3]
+    mesh = u.function_space.mesh
+    near = distances_to_body(mesh, x) < 6.0  # voxels the body may reach; the rest stay background
+    X = x[near].copy()
+    for _ in range(6):  # fixed point: u is small and smooth
+        inside = distances_to_body(mesh, X) <= 0.0
+        shift = np.zeros_like(X)
+        shift[inside] = probe(u, X[inside])
+        X = x[near] - shift
+    back = np.rint(np.linalg.solve(affine[:3, :3], (X - affine[:3, 3]).T).T).astype(int)
+    valid = np.all((back >= 0) & (back < labels.shape), axis=1)
+    out = np.zeros(labels.size, labels.dtype)
+    picked = np.zeros(len(X), labels.dtype)
+    picked[valid] = labels[tuple(back[valid].T)]
+    out[np.flatnonzero(near)] = picked
+    return out.reshape(labels.shape)
+
+
+def run(out: Path) -> None:
+    import fenics_elasto as fe
+
+    out.mkdir(parents=True, exist_ok=True)
+    rest = lm.label_map()
+    lm.write_nifti(out / "rest.nii.gz", rest)
+    geometry = sides()
+    (out / "spec.toml").write_text(SPEC.format(**{k: v for k, v in geometry.items() if k != "push"}))
+    assert main(["scene", str(out / "spec.toml"), "--out", str(out / "src")]) == 0
+    problem = out / "src" / "problem.toml"
+    truth = fe.load_scene(problem, overrides={"materials.tumour.E": TRUE_RATIO * 10.0, "boundary.fixed": ["hilum"],
+                                              "boundary.displacement.probe": {"value": geometry["push"].tolist()}})
+    simulation = fe.simulate(truth)
+    lm.write_nifti(out / "deformed.nii.gz", warped(rest, simulation.u))
+    bases = out / "bases.npz"
+    common = ["--set", "boundary.fixed=['hilum']", "--set", "boundary.loaded=['probe']",
+              "--set", "boundary.matched=['outer', 'tumour_surface']"]
+    assert main(["train", str(problem), "--synthetic", "60", "--rank", "24", "--out", str(bases)] + common) == 0
+    target = f"target={{labels={{image='{out / 'deformed.nii.gz'}', outer=[1, 2], tumour_surface=2}}}}"
+    assert main(["estimate", str(problem), "--out", str(out / "est"), "--set", f"reduction={{bases='{bases}'}}",
+                 "--set", target] + common) == 0
+    assert main(["render", str(out / "est"), "--out", str(out / "est.png")]) == 0
+    result = json.loads((out / "est" / "result.json").read_text())
+    E, entry = result["materials"]["tumour"]["E"], result["uncertainty"]["tumour.E"]
+    print(f"tumour E = {E:.2f} +- {entry['std']:.2f} (95 %: {entry['ci95'][0]:.2f}-{entry['ci95'][1]:.2f}); "
+          f"truth {TRUE_RATIO * 10:g}; picture {out / 'est.png'}")
+
+
+if __name__ == "__main__":
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", type=Path, default=Path("out/labelmap_chain"))
+    run(parser.parse_args().out)
