@@ -17,8 +17,6 @@ import numpy as np
 
 from fenics_elasto.files.readers import (check_landmark_dim, landmark_arrays, read_landmarks, surface_from_arrays,
                                          surface_of)
-from fenics_elasto.files.displacements import read_displacement
-from fenics_elasto.files.images import is_image
 from fenics_elasto.geometry.surface import Surface
 from fenics_elasto.inverse.displacement_field import DisplacementField
 from fenics_elasto.inverse.misfit import TargetData, smooth_if_rough, target_surface
@@ -47,6 +45,15 @@ def _check_surface(entry: object, name: str) -> object:
     require(isinstance(entry, pv.DataSet) or _is_pair(entry),
             f"{name}: expected a file, a pyvista mesh or (points, cells) arrays, got {type(entry).__name__}")
     return entry
+
+
+def _file_or_pair(entry: object, name: str, expected: str) -> Path | tuple[np.ndarray, np.ndarray]:
+    """A CSV/field file (made absolute: it names a file of the caller's working directory)
+    or a pair of (n, d) arrays of the same shape, checked."""
+    require(_is_path(entry) or _is_pair(entry), f"{name}: expected {expected}, got {type(entry).__name__}")
+    if _is_path(entry):
+        return Path(entry).resolve()  # type: ignore[arg-type]
+    return landmark_arrays(*entry, name=name)  # type: ignore[misc]
 
 
 class Target:
@@ -80,26 +87,22 @@ class Target:
             self.surfaces: object = {str(g): _check_surface(s, f"Target.surfaces[{g!r}]") for g, s in surfaces.items()}
         else:
             self.surfaces = None if surfaces is None else _check_surface(surfaces, "Target.surfaces")
-        self.landmarks: Path | tuple[np.ndarray, np.ndarray] | None = None
-        if landmarks is not None:
-            require(_is_path(landmarks) or _is_pair(landmarks),
-                    f"Target.landmarks: expected a CSV file or (source_points, observed_points), got {type(landmarks).__name__}")
-            self.landmarks = (Path(landmarks).resolve() if _is_path(landmarks)  # type: ignore[arg-type]
-                              else landmark_arrays(*landmarks, name="Target.landmarks"))  # type: ignore[misc]
-        self.displacement: Path | tuple[np.ndarray, np.ndarray] | None = None
-        if displacement is not None:
-            require(_is_path(displacement) or _is_pair(displacement),
-                    f"Target.displacement: expected a file or (points, vectors), got {type(displacement).__name__}")
-            self.displacement = (Path(displacement).resolve() if _is_path(displacement)  # type: ignore[arg-type]
-                                 else landmark_arrays(*displacement, name="Target.displacement"))  # type: ignore[misc]
-        weights = {"noise": noise, "landmark_weight": landmark_weight, "landmark_noise": landmark_noise,
-                   "displacement_noise": displacement_noise, "displacement_correlation": displacement_correlation}
-        for key, value in weights.items():
+        self.landmarks = None if landmarks is None else _file_or_pair(
+            landmarks, "Target.landmarks", "a CSV file or (source_points, observed_points)")
+        self.displacement = None if displacement is None else _file_or_pair(
+            displacement, "Target.displacement", "a file or (points, vectors)")
+        self.noise, self.landmark_weight, self.landmark_noise, self.smooth = noise, landmark_weight, landmark_noise, smooth
+        self.displacement_noise, self.displacement_correlation = displacement_noise, displacement_correlation
+        for key, value in self.weights.items():
             require(value is None or (isinstance(value, (int, float)) and np.isfinite(value) and value > 0),
                     f"Target.{key}: expected a number > 0 or None, got {value!r}")
         require(smooth in ("auto", "off"), f"Target.smooth: expected \"auto\" or \"off\", got {smooth!r}")
-        self.noise, self.landmark_weight, self.landmark_noise, self.smooth = noise, landmark_weight, landmark_noise, smooth
-        self.weights = weights
+
+    @property
+    def weights(self) -> dict[str, float | None]:
+        """The [target] numbers this target sets: noises, weight, correlation length."""
+        return {"noise": self.noise, "landmark_weight": self.landmark_weight, "landmark_noise": self.landmark_noise,
+                "displacement_noise": self.displacement_noise, "displacement_correlation": self.displacement_correlation}
 
     def spec(self) -> dict:
         """The problem file's [target] table this target stands for (files by their
@@ -131,8 +134,7 @@ class Target:
             check_landmark_dim(self.landmarks, gdim, "Target.landmarks")
             data.landmarks = self.landmarks
         if isinstance(self.displacement, Path):
-            data.displacement = DisplacementField(*read_displacement(self.displacement, gdim), str(self.displacement),
-                                                  dense=is_image(self.displacement))
+            data.displacement = DisplacementField.read(self.displacement, gdim)
         elif self.displacement is not None:
             check_landmark_dim(self.displacement, gdim, "Target.displacement")
             data.displacement = DisplacementField(*self.displacement, source="Target.displacement")

@@ -1,4 +1,4 @@
-"""A dense displacement field as observations of u inside the body (docs/method.md §9).
+"""A dense displacement field as observations of u inside the body (docs/method.md §10).
 
 A registration's field is smooth at its own correlation length: neighbouring samples
 carry the same error, not independent ones. Counting each of 10^5 voxels as an
@@ -23,12 +23,15 @@ is bad input. No sample inside at all is a field in another frame or unit.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import ufl
 from dolfinx import fem
 from mpi4py import MPI
 
+from fenics_elasto.files.displacements import read_displacement
+from fenics_elasto.files.images import is_image
 from fenics_elasto.model.observation import distances_to_body
 from fenics_elasto.util.errors import require
 from fenics_elasto.util.logs import log
@@ -44,6 +47,11 @@ class DisplacementField:
     vectors: np.ndarray
     source: str = "displacement"
     dense: bool = False
+
+    @classmethod
+    def read(cls, path: Path, gdim: int) -> DisplacementField:
+        """The field in a file (files/displacements.py), named by its path; an image is dense."""
+        return cls(*read_displacement(path, gdim), source=str(path), dense=is_image(path))
 
 
 def mean_cell_size(mesh) -> float:

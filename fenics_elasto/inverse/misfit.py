@@ -25,8 +25,7 @@ import numpy as np
 from fenics_elasto.util.errors import require
 from fenics_elasto.util.logs import log
 from fenics_elasto.geometry.surface import Surface
-from fenics_elasto.files.displacements import read_displacement
-from fenics_elasto.files.images import is_image, read_label_image
+from fenics_elasto.files.images import read_label_image
 from fenics_elasto.inverse.displacement_field import DisplacementField
 from fenics_elasto.files.readers import read_landmarks, read_surface
 from fenics_elasto.geometry.label_surfaces import label_surface
@@ -240,8 +239,7 @@ def read_target_field(scene, spec: dict) -> DisplacementField | None:
     """A target table's displacement: the field's samples as read (not yet sampled), or None."""
     if spec.get("displacement") is None:
         return None
-    path = scene.path.parent / spec["displacement"]
-    return DisplacementField(*read_displacement(path, scene.gdim), source=str(path), dense=is_image(path))
+    return DisplacementField.read(scene.path.parent / spec["displacement"], scene.gdim)
 
 
 def label_map_targets(scene, table: dict, where: str) -> dict[str, Surface]:
