@@ -129,10 +129,10 @@ class Profile:
                  f"back-solves, equation residual {self.surrogate.residual(theta):.1e}): no factorization")
         J, dJ = self.surrogate_response(theta)
         fit = self.inner.fit(J)  # the same optimum, on the space the derivatives grew (exact to tol before)
-        fields, owned = [], self.surrogate.G.shape[0]
+        fields, owned, modes = [], self.surrogate.G.shape[0], self.surrogate.fields(theta)
         for q in self.problem.states.split(fit.q):
             u = self.problem.model.dofs.function()
-            u.x.array[:owned] = self.surrogate.fields(theta) @ q
+            u.x.array[:owned] = modes @ q
             u.x.scatter_forward()
             fields.append(u)
         evaluation = self.problem.evaluate_field(theta, fields)

@@ -46,58 +46,66 @@ from fenics_elasto.util.logs import log
 HIGHER_DEGREE_RTOL = 1e-6
 
 
-def higher_degree_solution(scene, E, nu, u: fem.Function) -> fem.Function:
-    """The displacement one degree higher than ``u``'s space with the materials (E, nu)
-    per region, clamped where the scene is, and every loaded wall held at ``u``: one
-    solve by the scene's own CG + AMG (model.solvers.IterativeSolver), started from u
-    itself (interpolated: CG finds only the correction), to HIGHER_DEGREE_RTOL or the
-    scene's tighter [solver] rtol."""
-    V_low = u.function_space
+def higher_degree_solutions(scene, E, nu, fields: list[fem.Function]) -> list[fem.Function]:
+    """The displacement one degree higher than the fields' space with the materials (E, nu)
+    per region, clamped where the scene is, and every loaded wall held at each field
+    (several states: one each): one K and one CG + AMG (model.solvers.IterativeSolver)
+    for them all, each solve started from its field itself (interpolated: CG finds only
+    the correction), to HIGHER_DEGREE_RTOL or the scene's tighter [solver] rtol."""
     mesh = scene.mesh
-    V = fem.functionspace(mesh, ("Lagrange", V_low.element.basix_element.degree + 1, (mesh.geometry.dim,)))
-    held = fem.Function(V)
-    held.interpolate(u)
+    V = fem.functionspace(mesh, ("Lagrange", fields[0].function_space.element.basix_element.degree + 1,
+                                 (mesh.geometry.dim,)))
+    held = fem.Function(V)  # the walls' values; K does not depend on them, the lifted load does
     walls = scene.facets(list(scene.config["boundary"]["fixed"]) + list(scene.config["boundary"]["loaded"]))
     bc = fem.dirichletbc(held, fem.locate_dofs_topological(V, mesh.topology.dim - 1, walls))
-    A, b = _system(scene, V, E, nu, bc)
-    indices, owned_count = bc.dof_indices()
-    owned = V.tabulate_dof_coordinates()[: V.dofmap.index_map.size_local, : mesh.geometry.dim]
-    comm = mesh.comm
-    start = WarmStart(comm)
-    start.seed(held.x.petsc_vec.array[:, None])
-    settings = SolverSettings.from_config(scene.config.get("solver"))
-    settings = replace(settings, rtol=max(settings.rtol, HIGHER_DEGREE_RTOL))
-    solver = IterativeSolver(A, indices[:owned_count], settings, SolverStats("iterative"), rigid_body_modes(owned, comm),
-                             start)
-    solution = fem.Function(V)
-    try:
-        solver.solve(b, solution.x.petsc_vec)
-    finally:
-        solver.destroy()
-        b.destroy()
-    solution.x.scatter_forward()
-    log.debug(f"higher-degree solve: {solver.stats.iterations} CG iterations")
-    return solution
-
-
-def _system(scene, V, E, nu, bc) -> tuple[PETSc.Mat, PETSc.Vec]:
-    """K and the lifted right-hand side of the problem on V (no body load)."""
-    mesh = scene.mesh
-    u, v = ufl.TrialFunction(V), ufl.TestFunction(V)
-    dx = ufl.Measure("dx", domain=mesh, subdomain_data=scene.cell_tags, metadata=stiffness_quadrature(V))
-    mu, lam = lame(E, nu, scene.plane)
-    a = sum(2 * float(m) * ufl.inner(epsilon(u), epsilon(v)) * dx(material.tag)
-            + float(lm) * ufl.div(u) * ufl.div(v) * dx(material.tag)
-            for material, m, lm in zip(scene.materials, mu, lam))
-    form = fem.form(a)
+    form = _stiffness_form(scene, V, E, nu)
     A = dolfinx.fem.petsc.assemble_matrix(form, bcs=[bc])
     A.assemble()
-    zero = fem.form(ufl.inner(fem.Constant(mesh, np.zeros(mesh.geometry.dim)), v) * ufl.dx)
+    indices, owned_count = bc.dof_indices()
+    owned = V.tabulate_dof_coordinates()[: V.dofmap.index_map.size_local, : mesh.geometry.dim]
+    start = WarmStart(mesh.comm)
+    settings = SolverSettings.from_config(scene.config.get("solver"))
+    settings = replace(settings, rtol=max(settings.rtol, HIGHER_DEGREE_RTOL))
+    solver = IterativeSolver(A, indices[:owned_count], settings, SolverStats("iterative"),
+                             rigid_body_modes(owned, mesh.comm), start)
+    solutions = []
+    try:
+        for u in fields:
+            held.interpolate(u)
+            start.seed(held.x.petsc_vec.array[:, None])
+            b = _lifted_load(form, bc, V)
+            solution = fem.Function(V)
+            try:
+                solver.solve(b, solution.x.petsc_vec)
+            finally:
+                b.destroy()
+            solution.x.scatter_forward()
+            solutions.append(solution)
+    finally:
+        solver.destroy()
+    log.debug(f"higher-degree solves: {solver.stats.iterations} CG iterations")
+    return solutions
+
+
+def _stiffness_form(scene, V, E, nu) -> fem.Form:
+    """K's form on V with the materials (E, nu) per region."""
+    u, v = ufl.TrialFunction(V), ufl.TestFunction(V)
+    dx = ufl.Measure("dx", domain=scene.mesh, subdomain_data=scene.cell_tags, metadata=stiffness_quadrature(V))
+    mu, lam = lame(E, nu, scene.plane)
+    return fem.form(sum(2 * float(m) * ufl.inner(epsilon(u), epsilon(v)) * dx(material.tag)
+                        + float(lm) * ufl.div(u) * ufl.div(v) * dx(material.tag)
+                        for material, m, lm in zip(scene.materials, mu, lam)))
+
+
+def _lifted_load(form, bc, V) -> PETSc.Vec:
+    """The right-hand side of K u = 0 with the walls held at bc's values (no body load)."""
+    mesh = V.mesh
+    zero = fem.form(ufl.inner(fem.Constant(mesh, np.zeros(mesh.geometry.dim)), ufl.TestFunction(V)) * ufl.dx)
     b = dolfinx.fem.petsc.assemble_vector(zero)
     dolfinx.fem.petsc.apply_lifting(b, [form], bcs=[[bc]])
     b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
     dolfinx.fem.petsc.set_bc(b, [bc])
-    return A, b
+    return b
 
 
 def mesh_shift(problem, lin: Linearisation, theta, evaluation) -> np.ndarray | None:
@@ -109,17 +117,18 @@ def mesh_shift(problem, lin: Linearisation, theta, evaluation) -> np.ndarray | N
         return None
     start = time.perf_counter()
     E, nu = problem.params.materials(theta)
-    parts = []  # each state's (several states: one solve each, rows one state after another)
-    for u in evaluation.fields or [evaluation.u]:
-        finer = higher_degree_solution(scene, E, nu, u)
-        probe = PointProbe(finer.function_space, problem.observation.points)
-        coarse = fem.Function(finer.function_space)
+    solutions = higher_degree_solutions(scene, E, nu, evaluation.fields)  # each state's
+    V = solutions[0].function_space
+    probe = PointProbe(V, problem.observation.points)
+    coarse = fem.Function(V)
+    parts = []  # rows one state after another
+    for u, finer in zip(evaluation.fields, solutions):
         coarse.interpolate(u)
         parts.append(probe.values(finer.x.array) - probe.values(coarse.x.array))
     eps = np.concatenate(parts)
     rows = problem.misfit.statistical_rows(evaluation.y, evaluation.residual)
     ds = offset_shift(lin, np.einsum("lkd,ld->lk", rows, eps).ravel())
-    log.info(f"the source mesh's own error: a degree-{finer.function_space.element.basix_element.degree} solve "
+    log.info(f"the source mesh's own error: a degree-{V.element.basix_element.degree} solve "
              f"at the answer moves the observed points by up to {np.abs(eps).max():.3g} "
              f"({time.perf_counter() - start:.1f} s)")
     return ds

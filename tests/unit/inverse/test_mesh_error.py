@@ -5,7 +5,7 @@ solution than the estimate's own space."""
 import numpy as np
 import pytest
 
-from fenics_elasto.inverse.uncertainty.mesh_error import higher_degree_solution
+from fenics_elasto.inverse.uncertainty.mesh_error import higher_degree_solutions
 from fenics_elasto.mesh.builtin import build_scene
 from fenics_elasto.model.observation import probe
 from fenics_elasto.model.scene import load_scene
@@ -27,7 +27,7 @@ def test_rigid_motion_held_on_the_walls_is_reproduced_exactly(letter):
     x = u.function_space.tabulate_dof_coordinates()[:, :2]
     theta = 0.01
     u.x.array[:] = np.column_stack([0.3 - theta * x[:, 1], -0.1 + theta * x[:, 0]]).ravel()
-    finer = higher_degree_solution(scene, [10.0], [0.3], u)
+    (finer,) = higher_degree_solutions(scene, [10.0], [0.3], [u])
     points = finer.function_space.tabulate_dof_coordinates()[:, :2]
     expected = np.column_stack([0.3 - theta * points[:, 1], -0.1 + theta * points[:, 0]])
     assert np.abs(finer.x.array.reshape(-1, 2) - expected).max() < 2e-6  # CG to [solver] rtol
@@ -39,7 +39,7 @@ def test_higher_degree_is_closer_to_the_converged_answer(letter):
     scene, folder = letter
     coarse = simulate(scene)
     fine = simulate(load_scene(build_scene("letter-a", folder / "fine", size=0.1)))
-    finer = higher_degree_solution(scene, [10.0], [0.3], coarse.u)
+    (finer,) = higher_degree_solutions(scene, [10.0], [0.3], [coarse.u])
     points = finer.function_space.mesh.geometry.x[:, :2][::7]
     reference = probe(fine.u, points)
     err_p2 = np.linalg.norm(probe(coarse.u, points) - reference, axis=1)
