@@ -1,4 +1,4 @@
-"""A measured total force: the scale that unknown forces leave open (docs/method.md §9).
+"""A measured total force: the scale that unknown forces leave open (docs/method.md §10).
 
 With unknown boundary forces, scaling every E and the forces together leaves u
 unchanged, so surfaces, landmarks and fields determine only the ratios of E and the
@@ -26,9 +26,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from fenics_elasto.inverse.uncertainty.profile_interval import Z95
 from fenics_elasto.util.logs import log
-
-Z95 = 1.959963984540054
 
 
 @dataclass

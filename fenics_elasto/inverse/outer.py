@@ -74,8 +74,7 @@ def bracketed_minimum(value_and_gradient, known: list[tuple[float, float, float]
     bracket no minimum (it lies at a bound or beyond them: L-BFGS-B, which handles bounds)."""
     points = list(known)
     for iteration in range(maxiter):
-        x, f, g = min(points, key=lambda p: p[1])
-        downhill = [p for p in points if (p[0] - x) * g < 0]
+        (x, f, g), downhill = _lowest_and_downhill(points)
         if not downhill:
             return iteration if g == 0.0 or iteration else None
         far = min(downhill, key=lambda p: abs(p[0] - x))
@@ -210,9 +209,15 @@ def _bracketed_on_surrogate(surrogate: SurrogateProfile, x0, known: list, xtol: 
     return np.array([best[0]]), len(evaluated)
 
 
+def _lowest_and_downhill(points: list) -> tuple[tuple[float, float, float], list]:
+    """The lowest of these (x, f, f') points, and the points on its downhill side."""
+    x, f, g = min(points, key=lambda p: p[1])
+    return (x, f, g), [p for p in points if (p[0] - x) * g < 0]
+
+
 def _brackets(points: list) -> bool:
-    """Whether the lowest of these (x, f, f') points has another on its downhill side."""
+    """Whether the lowest of these points is a minimum or has another on its downhill side."""
     if not points:
         return False
-    x, _, g = min(points, key=lambda p: p[1])
-    return g == 0.0 or any((p[0] - x) * g < 0 for p in points)
+    lowest, downhill = _lowest_and_downhill(points)
+    return lowest[2] == 0.0 or bool(downhill)
