@@ -38,16 +38,6 @@ RATIO, TRUTH, SECOND_TOP = 4.0, 40.0, (0.2, 0.0, -0.4, 0.0)
 FIDUCIALS = np.array([[0.3, 0.2], [-0.4, 0.1], [0.1, -0.5], [-0.2, -0.3]])
 
 
-def smooth_error(points: np.ndarray, std: float, seed: int = 0) -> np.ndarray:
-    rng = np.random.default_rng(seed)
-    out = np.zeros_like(points)
-    for c in range(points.shape[1]):
-        for _ in range(6):
-            k = rng.normal(0.0, 2.5, points.shape[1])
-            out[:, c] += np.cos(points @ k + rng.uniform(0, 2 * np.pi))
-    return std * out / np.sqrt(3.0)
-
-
 def data_files(out: Path) -> dict:
     import pyvista as pv
 
@@ -56,7 +46,7 @@ def data_files(out: Path) -> dict:
     ind.write_landmarks(out / "fiducials.csv", FIDUCIALS, FIDUCIALS + ind.inclusion_displacement(FIDUCIALS, RATIO))
     x, y = np.meshgrid(np.arange(-4.99, 4.995, 0.02), np.arange(-2.99, 2.995, 0.02))  # 1.5e5 samples
     points = np.c_[x.ravel(), y.ravel()]
-    field = ind.inclusion_displacement(points, RATIO) + smooth_error(points, 0.005)
+    field = ind.inclusion_displacement(points, RATIO) + ind.smooth_error(points, 0.005)
     cloud = pv.PolyData(np.c_[points, np.zeros(len(points))])
     cloud["displacement"] = np.c_[field, np.zeros(len(field))]
     cloud.save(out / "field.vtp")

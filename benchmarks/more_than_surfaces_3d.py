@@ -41,13 +41,7 @@ def noisy_field(path: Path, out: Path, share: float) -> tuple[Path, float]:
     cloud = pv.read(path)
     u = np.asarray(cloud["displacement"])
     std = share * float(np.linalg.norm(u, axis=1).max())
-    rng = np.random.default_rng(0)
-    error = np.zeros_like(u)
-    for c in range(3):
-        for _ in range(6):
-            k = rng.normal(0.0, 0.6, 3)  # wavelengths of ~3-10 cm: a registration's smooth error
-            error[:, c] += np.cos(np.asarray(cloud.points) @ k + rng.uniform(0, 2 * np.pi))
-    cloud["displacement"] = u + std * error / np.sqrt(3.0)
+    cloud["displacement"] = u + ind.smooth_error(np.asarray(cloud.points, float), std, spread=0.6)  # ~3-10 cm waves
     cloud.save(out)
     return out, std
 

@@ -676,6 +676,19 @@ def inclusion(out, ratio: float, top=INCLUSION_TOP, center=(0.0, 0.0), radius: f
     return cached(out, "inclusion", params, make)
 
 
+def smooth_error(points: np.ndarray, std: float, seed: int = 0, spread: float = 2.5) -> np.ndarray:
+    """A registration's kind of error at ``points``: per component six cosines with random
+    wave vectors (normal, ``spread`` per unit length: wavelengths of ~2 pi / spread) and
+    phases, scaled to ``std``. Smooth, so sampling it more densely adds no information."""
+    rng = np.random.default_rng(seed)
+    out = np.zeros_like(points)
+    for c in range(points.shape[1]):
+        for _ in range(6):
+            k = rng.normal(0.0, spread, points.shape[1])
+            out[:, c] += np.cos(points @ k + rng.uniform(0, 2 * np.pi))
+    return std * out / np.sqrt(3.0)  # six unit cosines: variance 3
+
+
 @lru_cache(maxsize=4)
 def inclusion_solution(ratio: float, top=INCLUSION_TOP, center=(0.0, 0.0), radius: float = 1.2, nu: float = 0.3,
                        E: float = 10.0, size: float = 0.1) -> tuple[Elasticity, np.ndarray, dict]:

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from fenics_elasto.app.cli import main
-from independent import INCLUSION_TOP, inclusion, inclusion_displacement
+from independent import INCLUSION_TOP, inclusion, inclusion_displacement, smooth_error
 
 
 PRESSED = (0.2, 0.0, -0.4, 0.0)  # the second state's top motion: shifted and pressed
@@ -32,18 +32,6 @@ def two_cases(tmp_path_factory):
 MPI_STATES = Path(__file__).resolve().parents[1] / "mpi" / "states.py"
 RATIO, E_TRUE = 4.0, 40.0
 SOURCE_SIZE = 0.2  # the straight-sided source resolves the circle to ~1 %; at 0.35 its interface costs E -1.2 %
-
-
-def smooth_noise(points: np.ndarray, std: float, seed: int = 0) -> np.ndarray:
-    """A registration-like error: smooth (wavelengths ~1-3, the field's correlation
-    length), so sampling it more densely adds no information."""
-    rng = np.random.default_rng(seed)
-    out = np.zeros_like(points)
-    for c in range(points.shape[1]):
-        for _ in range(6):
-            k = rng.normal(0.0, 2.5, points.shape[1])
-            out[:, c] += np.cos(points @ k + rng.uniform(0, 2 * np.pi))
-    return std * out / np.sqrt(3.0)  # six unit cosines: variance 3
 
 
 def write_field(path, points, vectors):
@@ -77,7 +65,7 @@ def test_a_dense_field_determines_E_whatever_its_sampling(tmp_path):
     answers = []
     for spacing in (0.1, 0.05):
         points = grid(spacing)
-        field = inclusion_displacement(points, RATIO) + smooth_noise(points, 0.005)
+        field = inclusion_displacement(points, RATIO) + smooth_error(points, 0.005)  # wavelengths ~1-3
         path = write_field(tmp_path / f"field_{spacing}.vtp", points, field)
         result = estimate(tmp_path, f"field_{spacing}", problem,
                           f"target={{displacement='{path}', displacement_noise=0.005}}")
