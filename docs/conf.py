@@ -42,7 +42,7 @@ html_css_files = ["tables.css"]
 # The demos are jupytext percent scripts in demos/ (DOLFINx's way): each becomes a
 # Markdown page in docs/demos/ before Sphinx reads the sources. The pages are generated
 # (not in git); links that the script writes relative to demos/ point into docs/ here.
-LITERATE_DEMOS = ["letter_a_poisson.py", "prostate_elastography.py"]
+LITERATE_DEMOS = ["letter_a_poisson.py", "prostate_elastography.py", "real_prostate.py"]
 
 
 def write_demo_pages() -> None:
