@@ -73,20 +73,21 @@ class Surface:
     group: np.ndarray  # (m,) which surface each facet is on
 
 
-def curve_if_straight(gmsh, tdim: int, path) -> list[str]:
+def curve_if_straight(gmsh, tdim: int, path) -> tuple[str | None, list[str]]:
     """A straight-sided 3D mesh in the open gmsh model whose surfaces bend, curved
-    (``curve_mesh``), with one line saying so; returns the warnings for surfaces too
-    coarse to tell their curvature."""
+    (``curve_mesh``), with one line saying so; returns that line (None if nothing was
+    curved) and the warnings for surfaces too coarse to tell their curvature."""
     if tdim != 3 or not straight_sided(gmsh, tdim):
-        return []
+        return None, []
     done = curve_mesh(gmsh, tdim)
     if done is None:
-        return []
+        return None, []
     unfolded = f"; {done.straightened} thin cells kept partly straight so as not to fold" if done.straightened else ""
-    log.info(f"note: {Path(path).name}: straight-sided (order 1) with curved surfaces: curved on load, {done.moved} "
-             f"surface edge midpoints moved onto smooth surfaces through its facets (largest move {done.largest:.3g}, "
-             f"{100 * done.largest_share:.0f} % of its edge{unfolded}); curve = \"off\" keeps it straight")
-    return [f"{Path(path).name}: {name}: neighbouring facets meet at {np.degrees(angle):.0f} degrees on average, too "
+    note = (f"note: {Path(path).name}: straight-sided (order 1) with curved surfaces: curved on load, {done.moved} "
+            f"surface edge midpoints moved onto smooth surfaces through its facets (largest move {done.largest:.3g}, "
+            f"{100 * done.largest_share:.0f} % of its edge{unfolded}); curve = \"off\" keeps it straight")
+    log.info(note)
+    return note, [f"{Path(path).name}: {name}: neighbouring facets meet at {np.degrees(angle):.0f} degrees on average, too "
             "coarse to tell its curvature: its curved surface may be off by a good part of its sag (up to "
             f"{done.largest:.2g} here), which can move an estimated E by several % -- mesh it finer (2-3x more "
             "facets across it)" for name, angle in done.coarse.items()]

@@ -129,9 +129,11 @@ class PointProbe:
         """(blocks, phi) per point: the cell's DOF blocks and its basis functions at the point."""
         element = self.V.ufl_element().basix_element
         blocks = self.V.dofmap.list[cells] if len(cells) else np.zeros((0, self.V.dofmap.list.shape[1]), np.int32)
-        reference = np.array([self._pull_back(mesh, p, c) for p, c in zip(points, cells)]).reshape(len(cells), -1)
+        # explicit widths: a rank may hold none of the points (reshape(0, -1) is an error)
+        reference = np.array([self._pull_back(mesh, p, c) for p, c in zip(points, cells)])
+        reference = reference.reshape(len(cells), mesh.topology.dim)
         phi = element.tabulate(0, reference)[0] if len(cells) else np.zeros(blocks.shape)
-        return blocks, phi.reshape(len(cells), -1)
+        return blocks, phi.reshape(blocks.shape)
 
     def _pull_back(self, mesh, point, cell) -> np.ndarray:
         """The point's reference coordinates in the cell: Newton on the cell's (curved)

@@ -26,6 +26,7 @@ from fenics_elasto.mesh.gmsh_models import open_msh, physical_facets
 from fenics_elasto.util.logs import log
 from fenics_elasto.mesh.curving import curve_if_straight
 from fenics_elasto.mesh.meshcheck import check_mesh
+from fenics_elasto.model.mesh_copy import read_copy, write_copy
 
 ELASTIC_KEYS = ("E", "nu")
 
@@ -183,7 +184,9 @@ class Parameters:
 def read_msh(path: Path, comm=MPI.COMM_WORLD, curve: bool = False):
     """Read a gmsh .msh into (mesh, cell_tags, cell group names->tag, facet groups,
     warnings); ``curve``: give a straight-sided mesh of curved surfaces curved geometry
-    (mesh/curving.py; one line says so, the warnings what it could not tell).
+    (mesh/curving.py; one line says so, the warnings what it could not tell). The
+    first read keeps what it made as the .msh's parallel copy, which later reads take
+    on every rank at once (mesh_copy.py).
 
     ``dolfinx.io.gmsh.read_from_msh`` keeps one tag per facet, so overlapping facet
     groups (``feet`` inside ``outline``) would lose members. Each facet group is
@@ -192,9 +195,12 @@ def read_msh(path: Path, comm=MPI.COMM_WORLD, curve: bool = False):
     """
     import gmsh
 
+    copied = read_copy(path, curve, comm)
+    if copied is not None:
+        return copied
     facet_rows: dict[str, np.ndarray] = {}  # rank 0: every facet group's facets as node rows
     try:
-        tdim, names, warnings = on_root(comm, lambda: _open_checked(path, facet_rows, curve))
+        tdim, names, note, warnings = on_root(comm, lambda: _open_checked(path, facet_rows, curve))
         try:  # model_to_mesh shares its own errors across ranks
             data = dolfinx.io.gmsh.model_to_mesh(gmsh.model if comm.rank == 0 else None, comm, 0, gdim=tdim)
         except RuntimeError as err:
@@ -204,13 +210,15 @@ def read_msh(path: Path, comm=MPI.COMM_WORLD, curve: bool = False):
             gmsh.model.remove()
     facet_groups = _distribute_facet_groups(data.mesh, names, facet_rows, comm)
     cell_groups = {n: g.tag for n, g in data.physical_groups.items() if g.dim == tdim}
-    return data.mesh, data.cell_tags, cell_groups, facet_groups, warnings
+    loaded = data.mesh, data.cell_tags, cell_groups, facet_groups, warnings
+    write_copy(path, curve, loaded, note, comm)
+    return loaded
 
 
-def _open_checked(path: Path, facet_rows: dict, curve: bool) -> tuple[int, list[str], list[str]]:
+def _open_checked(path: Path, facet_rows: dict, curve: bool) -> tuple[int, list[str], str | None, list[str]]:
     """Rank 0: open the .msh in gmsh, check what DOLFINx's reader would choke on, and
     fill ``facet_rows`` (group name -> facets as node rows); (tdim, facet group names,
-    the curving's warnings)."""
+    the curving's note and warnings)."""
     import gmsh
 
     open_msh(path)
@@ -228,9 +236,9 @@ def _open_checked(path: Path, facet_rows: dict, curve: bool) -> tuple[int, list[
     require(not unnamed, f"{path}: cell physical group(s) {unnamed} have no name; the problem file names "
                          "each region's material (gmsh: Physical Volume(\"name\") = ...)")
     check_mesh(gmsh, str(path), tdim)
-    warnings = curve_if_straight(gmsh, tdim, path) if curve else []
+    note, warnings = curve_if_straight(gmsh, tdim, path) if curve else (None, [])
     facet_rows.update(physical_facets(gmsh, tdim))
-    return tdim, sorted(facet_rows), warnings
+    return tdim, sorted(facet_rows), note, warnings
 
 
 def _distribute_facet_groups(mesh, names: list[str], facet_rows: dict, comm) -> dict[str, np.ndarray]:

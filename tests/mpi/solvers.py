@@ -28,7 +28,7 @@ f = forward.load(forces)  # kept alive: its petsc_vec borrows its memory
 near = forward.model.solve(forward.coefficients(2 * theta)[0], forward.clamped, f.x.petsc_vec, nearby=True)
 nodes = forward.model.dofs.node_set(["prostate_surface"])
 rows = nodes.dofs(forward.model.dofs.bs).ravel()
-block = nodes.gather(X[rows].reshape(len(nodes), -1))
+block = nodes.gather(X[rows].reshape(len(nodes), forward.model.dofs.bs * X.shape[1]))  # a rank may own none
 field, near_field = (nodes.gather(v.x.array.reshape(-1, forward.model.dofs.bs)[nodes.blocks]) for v in (u, near))
 if scene.comm.rank == 0:
     np.savez(out, u=field, X=block, near=near_field, factorizations=forward.model.factorizations,

@@ -553,28 +553,27 @@ def phantom_files(folder: Path) -> Path:
 
 @pytest.mark.slow
 def test_phantom_from_surface_files_gives_the_built_in_phantoms_E(tmp_path):
-    """The prostate phantom by both doors -- `mesh prostate-phantom` (gmsh's CAD shapes)
-    and `scene` from the same shapes as STL files -- trained alike (12 example scans),
-    estimating prostate E = 50 from one held-out target on a finer built-in mesh:
-    measured 51.59 (built-in) and 49.58 (scene)."""
+    """The prostate phantom through `scene` from its CAD shapes written as STL files,
+    with the built-in problem, trained as `mesh prostate-phantom` is in the demo (12
+    example scans), estimating prostate E = 50 from one held-out target on a finer
+    built-in mesh: measured 49.58 (51.59 through the built-in door, which
+    test_prostate_demo_quick and test_reduction.py run; both doors were run here
+    until the suite's time had to shrink)."""
     from fenics_elasto.mesh.builtin import build_scene as build_builtin
     from fenics_elasto.inverse.objective import InverseProblem
     from fenics_elasto.inverse.reduction.bases import train_bases
     from fenics_elasto.app.study import FINE, SIZE, recovered, run_case, simulate_examples, simulate_targets
 
-    builtin = build_builtin("prostate-phantom", tmp_path / "builtin", size=SIZE)
+    builtin = build_builtin("prostate-phantom", tmp_path / "builtin", size=SIZE)  # its problem.toml only
     build_scene_from_spec(phantom_files(tmp_path / "files"), tmp_path / "scene")
     routed = tmp_path / "scene" / "problem.toml"  # the built-in problem on the scene's mesh (bones: two groups)
     routed.write_text(builtin.read_text().replace('"phantom.msh"', '"scene.msh"').replace('["bones"]', '["pubis", "sacrum"]'))
     target = simulate_targets(tmp_path / "targets", (50.0,), FINE)[50.0].settings(landmarks=False)
-    found = {}
-    for name, source in (("built-in", builtin), ("scene", routed)):
-        examples = simulate_examples(source, tmp_path / name / "examples", 12)
-        bases = train_bases(InverseProblem(load_scene(source), target=False), examples, rank=12)
-        found[name] = recovered(run_case(source, target, bases.W))
-    print("prostate E = 50 by both doors:", found)
-    assert all(abs(E - 50.0) / 50.0 < 0.05 for E in found.values()), found
-    assert abs(found["scene"] / found["built-in"] - 1.0) < 0.05, found
+    examples = simulate_examples(routed, tmp_path / "scene" / "examples", 12)
+    bases = train_bases(InverseProblem(load_scene(routed), target=False), examples, rank=12)
+    E = recovered(run_case(routed, target, bases.W))
+    print("prostate E = 50 through `scene`:", E)
+    assert abs(E - 50.0) / 50.0 < 0.05, E
 
 
 KIDNEY = Path(__file__).resolve().parents[3] / "meshes" / "kidney"
