@@ -433,19 +433,25 @@ def _residual(K: PETSc.Mat, B, X):
 class IterativeSolver(LinearSolver):
     """CG + GAMG (rigid-body near-nullspace), warm-started; checked after every solve."""
 
-    def __init__(self, K, clamped, settings, stats, modes: PETSc.NullSpace, warm: WarmStart):
+    name = "CG + AMG"
+
+    def __init__(self, K, clamped, settings, stats, modes: PETSc.NullSpace | None, warm: WarmStart):
         super().__init__(K, clamped, settings, stats)
-        K.setNearNullSpace(modes)
+        if modes is not None:
+            K.setNearNullSpace(modes)
         self.warm = warm
         ksp = self.ksp
         ksp.setType("cg")
         ksp.setNormType(PETSc.KSP.NormType.UNPRECONDITIONED)  # rtol bounds ||b - K x|| / ||b||
         ksp.setTolerances(rtol=settings.rtol, max_it=MAX_ITERATIONS)
         ksp.setInitialGuessNonzero(True)
-        ksp.getPC().setType("gamg")
-        _set_defaults(GAMG_OPTIONS)
+        self._precondition(ksp.getPC())
         ksp.setFromOptions()
         self._setup()
+
+    def _precondition(self, pc: PETSc.PC) -> None:
+        pc.setType("gamg")
+        _set_defaults(GAMG_OPTIONS)
 
     def _setup(self) -> None:
         self.ksp.setUp()
@@ -474,7 +480,65 @@ class IterativeSolver(LinearSolver):
         self.warm.remember(self.K, X.getDenseArray(), B.getDenseArray())
 
     def _krylov(self, b, x) -> None:
-        _krylov(self, b, x, "CG + AMG", ": use [solver] method = \"direct\", or a larger rtol")
+        _krylov(self, b, x, self.name, ": use [solver] method = \"direct\", or a larger rtol")
+
+
+class TwoLevelSolver(IterativeSolver):
+    """CG on K_h (a space one degree higher than the model's, same mesh) preconditioned by
+    a two-level cycle whose coarse level is the model's own factorized K (``coarse``, a
+    DirectSolver): SSOR on K_h, the residual restricted by I^T (I: the model's space
+    interpolated into K_h's, V_p inside V_p+1), one back-solve with the factors,
+    prolonged by I, SSOR again. Since V_p lies inside V_p+1, I^T K_h I is the model's own
+    K wherever the materials and the quadrature agree: no coarse operator to form, no
+    AMG hierarchy to set up (the demo's coarse phantom, P3 at the answer: 10 iterations,
+    1.5 s, against GAMG's 33 iterations, 2.5 s + 2.5 s setup). The clamped DOFs of both
+    levels are the same walls' nodes, so the correction is zero there."""
+
+    name = "CG + a two-level cycle over the model's factors"
+
+    def __init__(self, K, clamped, settings, stats, warm: WarmStart, coarse: DirectSolver,
+                 interpolation: PETSc.Mat):
+        self._cycle = _TwoLevel(K, interpolation, coarse)
+        super().__init__(K, clamped, settings, stats, None, warm)
+
+    def _precondition(self, pc: PETSc.PC) -> None:
+        pc.setType(PETSc.PC.Type.PYTHON)
+        pc.setPythonContext(self._cycle)
+
+
+class _TwoLevel:
+    """A PETSc python PC: one symmetric two-level cycle (TwoLevelSolver)."""
+
+    def __init__(self, K: PETSc.Mat, interpolation: PETSc.Mat, coarse: DirectSolver):
+        self.K, self.I, self.coarse = K, interpolation, coarse
+        self.smoother = PETSc.PC().create(K.getComm())
+        self.smoother.setType("sor")  # PETSc's default sweep is symmetric: the cycle stays SPD
+        self.smoother.setOperators(K)
+        self.smoother.setUp()
+        self.r, self.t = K.createVecs()
+        self.rc, self.ec = coarse.K.createVecs()
+
+    def apply(self, pc, x, y):
+        self.smoother.apply(x, y)
+        self._residual(x, y)
+        self.I.multTranspose(self.r, self.rc)
+        self.rc.array[self.coarse.clamped] = 0.0
+        self.coarse.apply_factors(self.rc, self.ec)
+        self.ec.array[self.coarse.clamped] = 0.0
+        self.I.multAdd(self.ec, y, y)
+        self._residual(x, y)
+        self.smoother.apply(self.r, self.t)
+        y.axpy(1.0, self.t)
+
+    def _residual(self, x, y) -> None:
+        """r = x - K y."""
+        self.K.mult(y, self.r)
+        self.r.aypx(-1.0, x)
+
+    def destroy(self, pc) -> None:
+        """PETSc's call when the PC goes: free the cycle's own objects with it."""
+        for obj in (self.smoother, self.r, self.t, self.rc, self.ec):
+            obj.destroy()
 
 
 class NearbySolver(LinearSolver):
@@ -597,6 +661,11 @@ class SolverCache:
             return None
         settings = self.settings if rtol is None else replace(self.settings, rtol=rtol)
         return NearbySolver(self.stiffness(c, clamped), clamped, settings, self.stats, base)
+
+    def factors_near(self, c, clamped: np.ndarray) -> DirectSolver | None:
+        """The cached direct solver of K(c) itself, else ``closest``'s; None if neither."""
+        solver = self._solvers.get(self._key(c, clamped))
+        return solver if isinstance(solver, DirectSolver) else self.closest(c, clamped)
 
     def closest(self, c, clamped: np.ndarray) -> DirectSolver | None:
         """The cached direct solver of the same clamped set whose coefficients c0 differ

@@ -12,9 +12,15 @@ wrong there; mapped through the answer's linearisation (controls following, as f
 ``target_offset``) it gives ds, the shift a better model would make, reported as the
 ``mesh`` part of sigma (parts.py says why it is not applied as a correction).
 
-The solve is the scene's own CG + AMG (no factorization): about 12 s on the pelvis
-phantom's plain gmsh source (138k DOFs). (A two-level cycle over the estimate's own
-space took 8 iterations but 150 s to form its coarse operator, PETSc's P^T A P.)
+The solve is CG (no factorization of the bigger system), preconditioned by a two-level
+cycle whose coarse level is the estimate's own factorized K at (or near) the answer
+(model.solvers.TwoLevelSolver): the space one degree lower lies inside this one, so
+that coarse operator costs nothing more. On the pelvis phantom's plain gmsh source
+(43k DOFs, P3 138k) the mesh part took 15.4 s with AMG (5 s of it AMG's setup) and takes
+5-7 s with the cycle, the same part of sigma (benchmarks/profile_estimate.py). Without
+the factors (the iterative method, a big mesh) it is CG + AMG as before. (A two-level
+cycle over a coarser *mesh* took 8 iterations but 150 s to form its coarse operator,
+PETSc's P^T A P.)
 """
 
 from __future__ import annotations
@@ -35,7 +41,8 @@ from fenics_elasto.inverse.linearisation import Linearisation
 from fenics_elasto.inverse.uncertainty.posterior import offset_shift
 from fenics_elasto.model.materials import epsilon, lame
 from fenics_elasto.model.observation import PointProbe
-from fenics_elasto.model.solvers import IterativeSolver, SolverSettings, SolverStats, WarmStart, rigid_body_modes
+from fenics_elasto.model.solvers import (DirectSolver, IterativeSolver, SolverSettings, SolverStats, TwoLevelSolver,
+                                         WarmStart, rigid_body_modes)
 from fenics_elasto.model.stiffness import stiffness_quadrature
 from fenics_elasto.util.logs import log
 
@@ -46,12 +53,18 @@ from fenics_elasto.util.logs import log
 HIGHER_DEGREE_RTOL = 1e-6
 
 
-def higher_degree_solutions(scene, E, nu, fields: list[fem.Function]) -> list[fem.Function]:
+def higher_degree_solutions(scene, E, nu, fields: list[fem.Function],
+                            coarse: DirectSolver | None = None, stats: SolverStats | None = None
+                            ) -> list[fem.Function]:
     """The displacement one degree higher than the fields' space with the materials (E, nu)
     per region, clamped where the scene is, and every loaded wall held at each field
-    (several states: one each): one K and one CG + AMG (model.solvers.IterativeSolver)
-    for them all, each solve started from its field itself (interpolated: CG finds only
-    the correction), to HIGHER_DEGREE_RTOL or the scene's tighter [solver] rtol."""
+    (several states: one each): one K and one CG for them all, each solve started from
+    its field itself (interpolated: CG finds only the correction), to
+    HIGHER_DEGREE_RTOL or the scene's tighter [solver] rtol. ``coarse``: the factors of
+    the fields' own K at these materials (or near them) with the same walls clamped,
+    which make CG's preconditioner a two-level cycle (model.solvers.TwoLevelSolver);
+    without them, AMG (model.solvers.IterativeSolver). ``stats``: where to count the
+    solves and CG iterations."""
     mesh = scene.mesh
     V = fem.functionspace(mesh, ("Lagrange", fields[0].function_space.element.basix_element.degree + 1,
                                  (mesh.geometry.dim,)))
@@ -66,8 +79,13 @@ def higher_degree_solutions(scene, E, nu, fields: list[fem.Function]) -> list[fe
     start = WarmStart(mesh.comm)
     settings = SolverSettings.from_config(scene.config.get("solver"))
     settings = replace(settings, rtol=max(settings.rtol, HIGHER_DEGREE_RTOL))
-    solver = IterativeSolver(A, indices[:owned_count], settings, SolverStats("iterative"),
-                             rigid_body_modes(owned, mesh.comm), start)
+    stats = stats or SolverStats("iterative")
+    if coarse is None:
+        solver = IterativeSolver(A, indices[:owned_count], settings, stats, rigid_body_modes(owned, mesh.comm), start)
+    else:
+        interpolation = dolfinx.fem.petsc.interpolation_matrix(fields[0].function_space, V)
+        interpolation.assemble()
+        solver = TwoLevelSolver(A, indices[:owned_count], settings, stats, start, coarse, interpolation)
     solutions = []
     try:
         for u in fields:
@@ -83,7 +101,9 @@ def higher_degree_solutions(scene, E, nu, fields: list[fem.Function]) -> list[fe
             solutions.append(solution)
     finally:
         solver.destroy()
-    log.debug(f"higher-degree solves: {solver.stats.iterations} CG iterations")
+        if coarse is not None:
+            interpolation.destroy()
+    log.debug(f"higher-degree solves: {stats.iterations} iterations of {solver.name}")
     return solutions
 
 
@@ -117,7 +137,9 @@ def mesh_shift(problem, lin: Linearisation, theta, evaluation) -> np.ndarray | N
         return None
     start = time.perf_counter()
     E, nu = problem.params.materials(theta)
-    solutions = higher_degree_solutions(scene, E, nu, evaluation.fields)  # each state's
+    forward = problem.forward
+    coarse = forward.model.solvers.factors_near(forward.coefficients(theta)[0], forward.clamped_boundary)
+    solutions = higher_degree_solutions(scene, E, nu, evaluation.fields, coarse)  # each state's
     V = solutions[0].function_space
     probe = PointProbe(V, problem.observation.points)
     coarse = fem.Function(V)
