@@ -53,9 +53,10 @@ def _current_info(msh: Path, curve: bool) -> dict | None:
         return None
 
 
-def read_copy(msh: Path, curve: bool, comm=MPI.COMM_WORLD):
+def read_copy(msh: Path, curve: bool, comm=MPI.COMM_WORLD, announce: bool = True):
     """(mesh, cell_tags, cell groups, facet groups, warnings) from the current copy of
-    ``msh``, read in parallel; None when there is none."""
+    ``msh``, read in parallel; None when there is none. ``announce``: log the copy's
+    note (the curving's line), which a first read has just logged itself."""
     info = comm.bcast(_current_info(msh, curve) if comm.rank == 0 else None, root=0)
     if info is None:
         return None
@@ -67,7 +68,7 @@ def read_copy(msh: Path, curve: bool, comm=MPI.COMM_WORLD):
         cell_tags = file.read_meshtags(mesh, "cells")
         facet_groups = {name: np.asarray(file.read_meshtags(mesh, f"facets_{i}").indices, dtype=np.int32)
                         for i, name in enumerate(info["facet_groups"])}
-    if info["note"]:
+    if info["note"] and announce:
         log.info(f"{info['note']} (read from its parallel copy {folder_of(msh).name}/)")
     return mesh, cell_tags, info["cell_groups"], facet_groups, info["warnings"]
 

@@ -212,7 +212,10 @@ def read_msh(path: Path, comm=MPI.COMM_WORLD, curve: bool = False):
     cell_groups = {n: g.tag for n, g in data.physical_groups.items() if g.dim == tdim}
     loaded = data.mesh, data.cell_tags, cell_groups, facet_groups, warnings
     write_copy(path, curve, loaded, note, comm)
-    return loaded
+    # What was just written is read back, so that the first load and every later one give
+    # the same mesh in the same order (the XDMF read numbers cells and nodes its own way):
+    # without this, a first simulate and a second one differed in their DOF order.
+    return read_copy(path, curve, comm, announce=False) or loaded
 
 
 def _open_checked(path: Path, facet_rows: dict, curve: bool) -> tuple[int, list[str], str | None, list[str]]:
