@@ -66,11 +66,11 @@ def child(problem: str, method: str, analysis_only: bool) -> dict:
     quiet()
     clock = time.perf_counter()
     scene = load_scene(problem, command="simulate")
-    model = ElasticModel(scene, SolverSettings(method=method))
+    E, nu = material_values(scene)
+    model = ElasticModel(scene, SolverSettings(method=method), fixed=(E, nu))  # as simulate's own
     model.stiffness.terms
     comm.barrier()
     row = {"dofs": model.dofs.num_dofs, "ranks": comm.size, "method": method, "load + matrices s": time.perf_counter() - clock}
-    E, nu = material_values(scene)
     c = model.stiffness.coefficients(E, nu)
     clamped = model.dofs.clamped_dofs(scene.fixed + list(scene.displacement))
     if analysis_only:

@@ -20,20 +20,24 @@ from dolfinx import fem
 from fenics_elasto.model.dofs import DofLayout
 from fenics_elasto.model.scene import Scene
 from fenics_elasto.model.solvers import LinearSolver, SolverCache, SolverSettings, SolverStats, rigid_body_modes
-from fenics_elasto.model.stiffness import AffineStiffness
+from fenics_elasto.model.stiffness import AffineStiffness, FixedStiffness
 
 
 class ElasticModel:
     """A scene's space (``dofs``), K(theta) (``stiffness``), and the cached solvers of K."""
 
-    def __init__(self, scene: Scene, solver: SolverSettings | None = None, cache_size: int = 2):
+    def __init__(self, scene: Scene, solver: SolverSettings | None = None, cache_size: int = 2,
+                 fixed: tuple | None = None):
         """``solver``: default from the scene's ``[solver]`` table; ``cache_size``: solvers
-        kept (two: alternating material values do not refactor)."""
+        kept (two: alternating material values do not refactor); ``fixed``: (E, nu) per
+        region for a model that is only ever solved at those values (a simulation): K
+        then is one matrix, not an affine sum (stiffness.FixedStiffness)."""
         self.scene = scene
         self.dofs = DofLayout(scene)
         self.settings = solver or SolverSettings.from_config(scene.config.get("solver"))
         self.stats = SolverStats(self.settings.method_for(self.dofs.num_dofs))
-        self.stiffness = AffineStiffness(self.dofs, self.stats.method)
+        self.stiffness = (AffineStiffness(self.dofs, self.stats.method) if fixed is None
+                          else FixedStiffness(self.dofs, self.stats.method, *fixed))
         self._cache_size = cache_size
 
     @property

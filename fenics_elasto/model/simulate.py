@@ -58,11 +58,11 @@ def prescribed_function(model: ElasticModel, displacement: dict) -> fem.Function
 
 def simulate(scene: Scene, model: ElasticModel | None = None) -> Simulation:
     start = time.perf_counter()
-    model = model or ElasticModel(scene)
+    E, nu = material_values(scene)
+    model = model or ElasticModel(scene, fixed=(E, nu))  # its own: K at these materials only
     require(scene.load or scene.displacement or scene.pressure,
             f"{scene.path}: nothing to simulate: add [boundary.load], [boundary.pressure] or [boundary.displacement]")
     require(scene.fixed or scene.displacement, f"{scene.path}: boundary.fixed is empty: clamp at least one group (rigid motions)")
-    E, nu = material_values(scene)
     clamped = model.dofs.clamped_dofs(scene.fixed + list(scene.displacement))
     rhs = None
     if scene.load or scene.pressure:

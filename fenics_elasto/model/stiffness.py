@@ -51,6 +51,16 @@ def stiffness_quadrature(V: fem.FunctionSpace) -> dict:
     return {"quadrature_degree": max(2 * k - 2, (d - 1) * (g - 1) + k - 1)}
 
 
+def stiffness_form(scene, V: fem.FunctionSpace, E, nu) -> fem.Form:
+    """K's form on V with the materials (E, nu) per region: one matrix at fixed values."""
+    u, v = ufl.TrialFunction(V), ufl.TestFunction(V)
+    dx = ufl.Measure("dx", domain=scene.mesh, subdomain_data=scene.cell_tags, metadata=stiffness_quadrature(V))
+    mu, lam = lame(E, nu, scene.plane)
+    return fem.form(sum(2 * float(m) * ufl.inner(epsilon(u), epsilon(v)) * dx(material.tag)
+                        + float(lm) * ufl.div(u) * ufl.div(v) * dx(material.tag)
+                        for material, m, lm in zip(scene.materials, mu, lam)))
+
+
 class AffineStiffness:
     """The per-material matrices M_j and their combinations K = sum_j c_j M_j."""
 
@@ -184,3 +194,29 @@ class AffineStiffness:
         start = self.dofs.V.dofmap.index_map.local_range[0] * self.dofs.bs
         K.zeroRowsColumns((clamped + start).astype(PETSc.IntType), diag=1.0)
         return K
+
+
+class FixedStiffness(AffineStiffness):
+    """K at one set of materials (E, nu), assembled as one matrix: all a simulation needs.
+    The affine terms are what lets an estimate change materials without assembling again,
+    at the price of two whole-pattern matrices per region; at 1M DOFs the phantom's four
+    took ~0.55 GB each on top of K (docs: performance, memory per rank). Here K is the
+    single term, with coefficient 1 at those materials and no other."""
+
+    def __init__(self, dofs: DofLayout, method: str, E, nu):
+        super().__init__(dofs, method)
+        self.E, self.nu = np.asarray(E, float), np.asarray(nu, float)
+
+    @cached_property
+    def _assembled(self) -> tuple[list, list]:
+        K = dolfinx.fem.petsc.assemble_matrix(stiffness_form(self.scene, self.dofs.V, self.E, self.nu))
+        K.assemble()
+        return [K], [None]
+
+    def coefficients(self, E, nu) -> np.ndarray:
+        if not (np.allclose(E, self.E, rtol=1e-12) and np.allclose(nu, self.nu, rtol=1e-12)):
+            raise ValueError(f"a stiffness fixed at E {self.E}, nu {self.nu} was asked for E {E}, nu {nu}")
+        return np.ones(1)
+
+    def coefficient_derivatives(self, E, nu) -> tuple[np.ndarray, np.ndarray]:
+        raise TypeError("a stiffness at fixed materials has no derivatives in them: use AffineStiffness")

@@ -137,8 +137,8 @@ def test_reconfigure_equals_loading_with_the_overrides(scenes):
     again = reconfigure(scene, settings)
     assert again.mesh is scene.mesh
     u = simulate(again, model).u.x.array
-    expected = simulate(load_scene(scenes["cantilever"], settings)).u.x.array
-    assert np.abs(u - expected).max() < 1e-12 * np.abs(expected).max()
+    expected = simulate(load_scene(scenes["cantilever"], settings)).u.x.array  # its own K: one matrix, not a sum
+    assert np.abs(u - expected).max() < 1e-10 * np.abs(expected).max()
     assert np.abs(u - simulate(scene, model).u.x.array).max() > 0.1 * np.abs(expected).max()
     with pytest.raises(UserError, match="keeps the mesh"):
         reconfigure(scene, ["mesh='other.msh'"])

@@ -39,11 +39,10 @@ from dolfinx import fem
 
 from fenics_elasto.inverse.linearisation import Linearisation
 from fenics_elasto.inverse.uncertainty.posterior import offset_shift
-from fenics_elasto.model.materials import epsilon, lame
 from fenics_elasto.model.observation import PointProbe
 from fenics_elasto.model.solvers import (DirectSolver, IterativeSolver, SolverSettings, SolverStats, TwoLevelSolver,
                                          WarmStart, rigid_body_modes)
-from fenics_elasto.model.stiffness import stiffness_quadrature
+from fenics_elasto.model.stiffness import stiffness_form
 from fenics_elasto.util.logs import log
 
 # The correction the degree-3 solve finds is ~1 % of u (the phantom: 3e-3 of 0.3); its
@@ -71,7 +70,7 @@ def higher_degree_solutions(scene, E, nu, fields: list[fem.Function],
     held = fem.Function(V)  # the walls' values; K does not depend on them, the lifted load does
     walls = scene.facets(list(scene.config["boundary"]["fixed"]) + list(scene.config["boundary"]["loaded"]))
     bc = fem.dirichletbc(held, fem.locate_dofs_topological(V, mesh.topology.dim - 1, walls))
-    form = _stiffness_form(scene, V, E, nu)
+    form = stiffness_form(scene, V, E, nu)
     A = dolfinx.fem.petsc.assemble_matrix(form, bcs=[bc])
     A.assemble()
     indices, owned_count = bc.dof_indices()
@@ -105,16 +104,6 @@ def higher_degree_solutions(scene, E, nu, fields: list[fem.Function],
             interpolation.destroy()
     log.debug(f"higher-degree solves: {stats.iterations} iterations of {solver.name}")
     return solutions
-
-
-def _stiffness_form(scene, V, E, nu) -> fem.Form:
-    """K's form on V with the materials (E, nu) per region."""
-    u, v = ufl.TrialFunction(V), ufl.TestFunction(V)
-    dx = ufl.Measure("dx", domain=scene.mesh, subdomain_data=scene.cell_tags, metadata=stiffness_quadrature(V))
-    mu, lam = lame(E, nu, scene.plane)
-    return fem.form(sum(2 * float(m) * ufl.inner(epsilon(u), epsilon(v)) * dx(material.tag)
-                        + float(lm) * ufl.div(u) * ufl.div(v) * dx(material.tag)
-                        for material, m, lm in zip(scene.materials, mu, lam)))
 
 
 def _lifted_load(form, bc, V) -> PETSc.Vec:

@@ -1,0 +1,43 @@
+"""K(theta) (stiffness.py): the affine sum and the one-matrix K at fixed materials are
+the same operator, and a simulation holds the one matrix only."""
+
+import numpy as np
+import pytest
+
+from fenics_elasto.model.elasticity import ElasticModel
+from fenics_elasto.model.scene import load_scene
+from fenics_elasto.model.simulate import material_values, simulate
+
+
+@pytest.fixture(scope="module")
+def phantom_p1(scenes):
+    """The 3D phantom at P1: several regions, each its own pair of affine terms."""
+    return load_scene(scenes["prostate-phantom"], ["degree=1"])
+
+
+def test_fixed_stiffness_is_the_affine_sum_at_its_materials(phantom_p1):
+    E, nu = material_values(phantom_p1)
+    affine = ElasticModel(phantom_p1).stiffness
+    fixed = ElasticModel(phantom_p1, fixed=(E, nu)).stiffness
+    summed = affine.matrix(affine.coefficients(E, nu))
+    one = fixed.matrix(fixed.coefficients(E, nu))
+    summed.axpy(-1.0, one)
+    assert summed.norm() < 1e-12 * one.norm()
+    assert len(fixed.terms) == 1 and len(affine.terms) == 2 * len(phantom_p1.materials)
+
+
+def test_simulation_with_its_own_model_equals_a_shared_affine_one(phantom_p1):
+    own = simulate(phantom_p1)
+    shared = simulate(phantom_p1, ElasticModel(phantom_p1))
+    assert len(own.model.stiffness.terms) == 1
+    difference = np.abs(own.u.x.array - shared.u.x.array).max()
+    assert difference < 1e-9 * np.abs(shared.u.x.array).max()
+
+
+def test_fixed_stiffness_refuses_other_materials(phantom_p1):
+    E, nu = material_values(phantom_p1)
+    fixed = ElasticModel(phantom_p1, fixed=(E, nu)).stiffness
+    with pytest.raises(ValueError, match="fixed at"):
+        fixed.coefficients(2 * E, nu)
+    with pytest.raises(TypeError, match="no derivatives"):
+        fixed.coefficient_derivatives(E, nu)
