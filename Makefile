@@ -37,12 +37,14 @@ demo-prostate-quick: $(STAMP)
 	$(PY) demos/real_prostate.py --quick --out out/prostate-quick
 
 # On both cores (pytest-xdist; the slow tests first, so that none starts last); the
-# DOLFINx JIT cache is shared by the workers (its compiles are locked per form).
+# DOLFINx JIT cache is shared by the workers (its compiles are locked per form). One
+# BLAS thread per worker: two workers of two threads each would share two cores.
+WORKERS = OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1
 test: $(STAMP)
-	$(PY) -m pytest -q -n 2 --dist loadgroup --durations=15
+	$(WORKERS) $(PY) -m pytest -q -n 2 --dist loadgroup --durations=15
 
 test-fast: $(STAMP)
-	$(PY) -m pytest -q -n 2 -m "not slow"
+	$(WORKERS) $(PY) -m pytest -q -n 2 -m "not slow"
 
 # The demos' own variants as tests (minutes each; not part of make test).
 test-demo: $(STAMP)

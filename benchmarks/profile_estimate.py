@@ -7,14 +7,19 @@ estimate runs under cProfile; its time is grouped by what it does (cumulative ti
 the functions named, so a group holds what its functions call). Training is timed
 apart.
 
-    .venv/bin/python benchmarks/profile_estimate.py [--out DIR] [--ranks 80 240]
+    .venv/bin/python benchmarks/profile_estimate.py [--out DIR] [--ranks 80 240] [--mpi]
+
+``--mpi``: the same estimate timed serial and under ``mpiexec -n 2`` instead (no
+profiler), side by side.
 """
 
 from __future__ import annotations
 
 import argparse
 import cProfile
+import json
 import pstats
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -45,7 +50,9 @@ def cumulative(stats: pstats.Stats, path: str, name: str) -> float:
                if file.endswith(path) and func == name)
 
 
-def profile(out: Path, rank: int) -> None:
+def estimate_args(out: Path, rank: int) -> tuple[list[str], float]:
+    """The estimate's command-line arguments (bases trained first if not yet there), and
+    the seconds training took."""
     problem = ind.plain_source(out / "sources", 1)
     bases = problem.parent / f"bases_{rank}.npz"
     start = time.perf_counter()
@@ -56,7 +63,31 @@ def profile(out: Path, rank: int) -> None:
     files = ind.phantom(out / "truth", 50.0)
     surfaces = {g: files[g] for g in ("bladder", "prostate_surface", "rectum")}
     target = ind.retarget(problem, {"surfaces": surfaces, "landmarks": files["fiducials"]}, name="problem_profile.toml")
-    args = ["estimate", str(target), "--out", str(out / f"rank{rank}"), "--set", f"reduction={{bases='{bases}'}}"]
+    return ["estimate", str(target), "--out", str(out / f"rank{rank}"), "--set", f"reduction={{bases='{bases}'}}"], training
+
+
+def serial_and_two_ranks(out: Path, rank: int) -> None:
+    """The same estimate serial and under `mpiexec -n 2`, side by side (wall_time_s of
+    result.json, each its own process)."""
+    args, _ = estimate_args(out, rank)
+    binary = Path(sys.executable).parent
+    rows = []
+    for ranks in (1, 2):
+        folder = out / f"rank{rank}_on_{ranks}"
+        command = [str(binary / "fenics-elasto"), *args[:2], "--out", str(folder), *args[4:]]
+        subprocess.run(([str(binary / "mpiexec"), "-n", "2"] if ranks == 2 else []) + command, check=True,
+                       capture_output=True)
+        result = json.loads((folder / "result.json").read_text())
+        rows.append((ranks, result["wall_time_s"], result["materials"]["prostate"]["E"]))
+    print(f"\nrank {rank}: one reduced estimate, serial and on 2 ranks")
+    print("| ranks | wall s | ratio to serial | prostate E |")
+    print("|---|---|---|---|")
+    for ranks, seconds, E in rows:
+        print(f"| {ranks} | {seconds:.1f} | {seconds / rows[0][1]:.2f} | {E:.2f} |")
+
+
+def profile(out: Path, rank: int) -> None:
+    args, training = estimate_args(out, rank)
     profiler = cProfile.Profile()
     start = time.perf_counter()
     profiler.runcall(main, args)
@@ -75,6 +106,7 @@ if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=Path("out/profile_estimate"))
     parser.add_argument("--ranks", type=int, nargs="+", default=[80, 240])
+    parser.add_argument("--mpi", action="store_true", help="time the estimate serial and on 2 ranks instead")
     arguments = parser.parse_args()
     for r in arguments.ranks:
-        profile(arguments.out, r)
+        (serial_and_two_ranks if arguments.mpi else profile)(arguments.out, r)

@@ -20,12 +20,16 @@ try:
 except ImportError:  # DOLFINx from conda, a container or a source build
     pass
 
-from fenics_elasto.util.errors import UserError
-from fenics_elasto.model.scene import Scene
-from fenics_elasto.inverse.reduction.bases import Bases
-from fenics_elasto.app.target import Target
-from fenics_elasto.app.outcomes import Estimate, Simulation
-from fenics_elasto.app.api import build_scene, estimate, load_scene, render, simulate, train
+from fenics_elasto.util.threads import share_cores_among_ranks
+
+share_cores_among_ranks()  # under mpiexec: one BLAS thread per core share, not per core
+
+from fenics_elasto.util.errors import UserError  # noqa: E402
+from fenics_elasto.model.scene import Scene  # noqa: E402
+from fenics_elasto.inverse.reduction.bases import Bases  # noqa: E402
+from fenics_elasto.app.target import Target  # noqa: E402
+from fenics_elasto.app.outcomes import Estimate, Simulation  # noqa: E402
+from fenics_elasto.app.api import build_scene, estimate, load_scene, render, simulate, train  # noqa: E402
 
 try:
     __version__ = version("fenics_elasto")
