@@ -556,9 +556,12 @@ def test_phantom_from_surface_files_gives_the_built_in_phantoms_E(tmp_path):
     """The prostate phantom through `scene` from its CAD shapes written as STL files,
     with the built-in problem, trained as `mesh prostate-phantom` is in the demo (12
     example scans), estimating prostate E = 50 from one held-out target on a finer
-    built-in mesh: measured 49.58 (51.59 through the built-in door, which
-    test_prostate_demo_quick and test_reduction.py run; both doors were run here
-    until the suite's time had to shrink)."""
+    built-in mesh. Its answer rests on a flat Phi*: sigma is 8.5 % of E, and the mesh's
+    node numbering alone moved it by about one sigma (49.58 with gmsh's numbering, 50.54
+    with some loads read from the mesh's parallel copy, 46.42 +- 4.24 [39.0, 55.9] with
+    every load from it; 51.59 through the built-in door, which test_prostate_demo_quick
+    and test_reduction.py run). So the check is the interval's, and a bound of 10 %
+    that a wrongly routed scene (groups, regions, units) would miss by far."""
     from fenics_elasto.mesh.builtin import build_scene as build_builtin
     from fenics_elasto.inverse.objective import InverseProblem
     from fenics_elasto.inverse.reduction.bases import train_bases
@@ -571,9 +574,11 @@ def test_phantom_from_surface_files_gives_the_built_in_phantoms_E(tmp_path):
     target = simulate_targets(tmp_path / "targets", (50.0,), FINE)[50.0].settings(landmarks=False)
     examples = simulate_examples(routed, tmp_path / "scene" / "examples", 12)
     bases = train_bases(InverseProblem(load_scene(routed), target=False), examples, rank=12)
-    E = recovered(run_case(routed, target, bases.W))
-    print("prostate E = 50 through `scene`:", E)
-    assert abs(E - 50.0) / 50.0 < 0.05, E
+    result = run_case(routed, target, bases.W)
+    E = recovered(result)
+    low, high = result["uncertainty"]["prostate.E"]["ci95"]
+    print("prostate E = 50 through `scene`:", E, [low, high])
+    assert low < 50.0 < high and abs(E - 50.0) / 50.0 < 0.10, (E, low, high)
 
 
 KIDNEY = Path(__file__).resolve().parents[3] / "meshes" / "kidney"
