@@ -8,7 +8,7 @@ STAMP := $(VENV)/.installed
 PYTHON ?= $(shell for p in python3.13 python3.12 python3 $$(ls -d $$HOME/.pyenv/versions/3.1[2-9]*/bin/python3 /usr/bin/python3.1[2-9] 2>/dev/null); do \
   $$p -c 'import sys; sys.exit(sys.version_info < (3, 12))' >/dev/null 2>&1 && echo $$p && break; done)
 
-.PHONY: docs bench-adjoint demo demo-quick demo-accurate demo-prostate demo-prostate-quick test test-fast test-demo bench lint clean
+.PHONY: docs-screenshots docs bench-adjoint demo demo-quick demo-accurate demo-prostate demo-prostate-quick test test-fast test-demo bench lint clean
 
 $(STAMP): pyproject.toml constraints.txt
 	@test -n "$(PYTHON)" || { echo "error: no python >= 3.12 found on PATH" >&2; exit 2; }
@@ -87,3 +87,11 @@ $(DOCS_STAMP): $(STAMP)
 
 docs: $(DOCS_STAMP)
 	$(PY) -m sphinx -W --keep-going -q -b html docs docs/_build/html
+
+# The front and API pages as a reader sees them, in Debian's chromium (apt-get install
+# chromium; not needed by anything else): docs/_static/site/*.png.
+CHROMIUM = chromium --headless --no-sandbox --disable-gpu --disable-quic --no-first-run \
+	--disable-background-networking --disable-component-update --disable-sync --hide-scrollbars --window-size=1280,1000
+docs-screenshots: docs
+	for page in index api; do $(CHROMIUM) --user-data-dir=$$(mktemp -d) \
+		--screenshot=docs/_static/site/$$page.png file://$(CURDIR)/docs/_build/html/$$page.html; done

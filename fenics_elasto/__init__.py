@@ -2,7 +2,7 @@
 
 The public API (``import fenics_elasto as fe``)::
 
-    path = fe.build_scene("letter-a", "out/scene")            # or your own mesh: fe.Scene.from_mesh
+    path = fe.build_scene("letter-a", "out/scene")            # or fe.Scene.from_mesh(...)
     scene = fe.load_scene(path, overrides={"materials.letter.nu": 0.35})
     sim = fe.simulate(scene)                                  # sim.u, sim.surface("outline")
     result = fe.estimate(fe.load_scene(path), fe.Target(surfaces=sim.surface("outline")))

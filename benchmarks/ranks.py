@@ -1,0 +1,75 @@
+"""The reduced estimate's cost at rank 12, 80 and 240 beside one `simulate` of the same
+mesh (issue #35's rank table).
+
+The default phantom (`fenics-elasto mesh prostate-phantom`, its default size); the
+target is prostate E = 50 simulated on a finer mesh (h 0.8 against the source's 1.0)
+with wall motion unlike the
+training's (app/study.simulate_targets: the held-out motion), organ surfaces only.
+Bases: `train --synthetic N --rank r`, N = 120 for ranks 12 and 80, 400 for rank 240.
+Every command runs in its own process, one after another on the same machine; simulate
+and estimate are timed by result.json's `wall_time_s`, train around its process.
+
+    .venv/bin/python benchmarks/ranks.py [--out DIR] [--ranks 12 80 240]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+
+import independent as ind  # noqa: E402
+from fenics_elasto.app.study import simulate_targets  # noqa: E402
+
+TARGET_SIZE = 0.8  # cm: finer than the default phantom's 1.0
+EXAMPLES = {12: 120, 80: 120, 240: 400}
+BIN = Path(sys.executable).parent
+
+
+def cli(*args) -> float:
+    """Run one command of the toolkit; its wall seconds."""
+    start = time.perf_counter()
+    subprocess.run([str(BIN / "fenics-elasto"), *map(str, args)], check=True, capture_output=True)
+    return time.perf_counter() - start
+
+
+def result(folder: Path) -> dict:
+    return json.loads((folder / "result.json").read_text())
+
+
+def main(out: Path, ranks: list[int]) -> None:
+    source = out / "phantom"
+    if not (source / "problem.toml").exists():
+        cli("mesh", "prostate-phantom", "--out", source)
+    problem = source / "problem.toml"
+    files = simulate_targets(out / "target", (50.0,), TARGET_SIZE)[50.0]
+    target = ind.retarget(problem, {"surfaces": files.surfaces}, name="problem_ranks.toml")
+    cli("simulate", problem, "--out", out / "simulate")
+    simulated = result(out / "simulate")
+    rows = []
+    for rank in ranks:
+        bases = out / f"bases_{rank}.npz"
+        training = cli("train", problem, "--synthetic", EXAMPLES[rank], "--rank", rank, "--out", bases)
+        folder = out / f"estimate_{rank}"
+        cli("estimate", target, "--out", folder, "--set", f"reduction={{bases='{bases}'}}")
+        rows.append((rank, training, result(folder)))
+    seconds = simulated["wall_time_s"]
+    print(f"\ndefault phantom: {simulated['dofs']:,} DOFs; one simulate {seconds:.1f} s")
+    print("| rank (examples) | train s | train / simulate | estimate s | estimate / simulate | factorizations | prostate E |")
+    print("|---|---|---|---|---|---|---|")
+    for rank, training, r in rows:
+        print(f"| {rank} ({EXAMPLES[rank]}) | {training:.1f} | {training / seconds:.1f}x | {r['wall_time_s']:.1f} | "
+              f"{r['wall_time_s'] / seconds:.1f}x | {r['factorizations']} | {r['materials']['prostate']['E']:.2f} |")
+
+
+if __name__ == "__main__":
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", type=Path, default=Path("out/ranks"))
+    parser.add_argument("--ranks", type=int, nargs="+", default=[12, 80, 240])
+    arguments = parser.parse_args()
+    main(arguments.out, arguments.ranks)
