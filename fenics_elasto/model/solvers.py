@@ -507,7 +507,8 @@ class TwoLevelSolver(IterativeSolver):
 
 
 class _TwoLevel:
-    """A PETSc python PC: one symmetric two-level cycle (TwoLevelSolver)."""
+    """A PETSc python PC: one symmetric two-level cycle (TwoLevelSolver). It owns the
+    interpolation matrix it is given; the coarse solver stays its cache's."""
 
     def __init__(self, K: PETSc.Mat, interpolation: PETSc.Mat, coarse: DirectSolver):
         self.K, self.I, self.coarse = K, interpolation, coarse
@@ -537,7 +538,7 @@ class _TwoLevel:
 
     def destroy(self, pc) -> None:
         """PETSc's call when the PC goes: free the cycle's own objects with it."""
-        for obj in (self.smoother, self.r, self.t, self.rc, self.ec):
+        for obj in (self.smoother, self.I, self.r, self.t, self.rc, self.ec):
             obj.destroy()
 
 

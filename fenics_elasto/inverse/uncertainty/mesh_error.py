@@ -16,8 +16,8 @@ The solve is CG (no factorization of the bigger system), preconditioned by a two
 cycle whose coarse level is the estimate's own factorized K at (or near) the answer
 (model.solvers.TwoLevelSolver): the space one degree lower lies inside this one, so
 that coarse operator costs nothing more. On the pelvis phantom's plain gmsh source
-(43k DOFs, P3 138k) the mesh part took 15.4 s with AMG (5 s of it AMG's setup) and takes
-5-7 s with the cycle, the same part of sigma (benchmarks/profile_estimate.py). Without
+(43k DOFs, P3 138k) the mesh part took 11-15 s with AMG (5 s of it AMG's setup) and
+takes 5-7 s with the cycle, the same part of sigma (benchmarks/profile_estimate.py). Without
 the factors (the iterative method, a big mesh) it is CG + AMG as before. (A two-level
 cycle over a coarser *mesh* took 8 iterations but 150 s to form its coarse operator,
 PETSc's P^T A P.)
@@ -83,7 +83,7 @@ def higher_degree_solutions(scene, E, nu, fields: list[fem.Function],
         solver = IterativeSolver(A, indices[:owned_count], settings, stats, rigid_body_modes(owned, mesh.comm), start)
     else:
         interpolation = dolfinx.fem.petsc.interpolation_matrix(fields[0].function_space, V)
-        interpolation.assemble()
+        interpolation.assemble()  # the cycle's from here on: destroyed with it
         solver = TwoLevelSolver(A, indices[:owned_count], settings, stats, start, coarse, interpolation)
     solutions = []
     try:
@@ -100,8 +100,6 @@ def higher_degree_solutions(scene, E, nu, fields: list[fem.Function],
             solutions.append(solution)
     finally:
         solver.destroy()
-        if coarse is not None:
-            interpolation.destroy()
     log.debug(f"higher-degree solves: {stats.iterations} iterations of {solver.name}")
     return solutions
 
@@ -127,8 +125,8 @@ def mesh_shift(problem, lin: Linearisation, theta, evaluation) -> np.ndarray | N
     start = time.perf_counter()
     E, nu = problem.params.materials(theta)
     forward = problem.forward
-    coarse = forward.model.solvers.factors_near(forward.coefficients(theta)[0], forward.clamped_boundary)
-    solutions = higher_degree_solutions(scene, E, nu, evaluation.fields, coarse)  # each state's
+    factors = forward.model.solvers.factors_near(forward.coefficients(theta)[0], forward.clamped_boundary)
+    solutions = higher_degree_solutions(scene, E, nu, evaluation.fields, factors)  # each state's
     V = solutions[0].function_space
     probe = PointProbe(V, problem.observation.points)
     coarse = fem.Function(V)
