@@ -50,9 +50,9 @@ def cumulative(stats: pstats.Stats, path: str, name: str) -> float:
                if file.endswith(path) and func == name)
 
 
-def estimate_args(out: Path, rank: int) -> tuple[list[str], float]:
-    """The estimate's command-line arguments (bases trained first if not yet there), and
-    the seconds training took."""
+def prepare(out: Path, rank: int) -> tuple[Path, Path, float]:
+    """The estimate's problem file and bases (trained first if not yet there), and the
+    seconds training took."""
     problem = ind.plain_source(out / "sources", 1)
     bases = problem.parent / f"bases_{rank}.npz"
     start = time.perf_counter()
@@ -63,18 +63,23 @@ def estimate_args(out: Path, rank: int) -> tuple[list[str], float]:
     files = ind.phantom(out / "truth", 50.0)
     surfaces = {g: files[g] for g in ("bladder", "prostate_surface", "rectum")}
     target = ind.retarget(problem, {"surfaces": surfaces, "landmarks": files["fiducials"]}, name="problem_profile.toml")
-    return ["estimate", str(target), "--out", str(out / f"rank{rank}"), "--set", f"reduction={{bases='{bases}'}}"], training
+    return target, bases, training
+
+
+def estimate_args(target: Path, bases: Path, results: Path) -> list[str]:
+    """The command line of the estimate, writing to ``results``."""
+    return ["estimate", str(target), "--out", str(results), "--set", f"reduction={{bases='{bases}'}}"]
 
 
 def serial_and_two_ranks(out: Path, rank: int) -> None:
     """The same estimate serial and under `mpiexec -n 2`, side by side (wall_time_s of
     result.json, each its own process)."""
-    args, _ = estimate_args(out, rank)
+    target, bases, _ = prepare(out, rank)
     binary = Path(sys.executable).parent
     rows = []
     for ranks in (1, 2):
         folder = out / f"rank{rank}_on_{ranks}"
-        command = [str(binary / "fenics-elasto"), *args[:2], "--out", str(folder), *args[4:]]
+        command = [str(binary / "fenics-elasto"), *estimate_args(target, bases, folder)]
         subprocess.run(([str(binary / "mpiexec"), "-n", "2"] if ranks == 2 else []) + command, check=True,
                        capture_output=True)
         result = json.loads((folder / "result.json").read_text())
@@ -87,7 +92,8 @@ def serial_and_two_ranks(out: Path, rank: int) -> None:
 
 
 def profile(out: Path, rank: int) -> None:
-    args, training = estimate_args(out, rank)
+    target, bases, training = prepare(out, rank)
+    args = estimate_args(target, bases, out / f"rank{rank}")
     profiler = cProfile.Profile()
     start = time.perf_counter()
     profiler.runcall(main, args)
