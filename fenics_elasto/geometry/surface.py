@@ -107,14 +107,30 @@ class Surface:
         same = np.einsum("ij,ij->i", turned, self.area_normals) >= 0
         return np.where(same[:, None], self.normals, -self.normals)
 
-    def curvature_directions(self, x: np.ndarray) -> np.ndarray:
+    def curvature_directions(self, x: np.ndarray, smooth: bool = False) -> np.ndarray:
         """(n, dim, dim) rows spanning the Hessian of 1/2 d(x, S)^2 (zero rows pad).
 
         Closest point inside a face: the normal (the distance to a plane); on an edge:
         the two directions across the edge; at a vertex: every direction. These are
-        exact for a piecewise-linear S away from its medial axis, which makes the
-        Gauss-Newton model of the misfit a Newton model.
+        exact for a piecewise-linear S away from its medial axis, but only inside the
+        feature's Voronoi region, a thin wedge on a finely faceted surface. With
+        ``smooth``, a point closest to an edge or a vertex gets the curvature of a smooth
+        surface through it instead: one row, its unit distance direction (the face's
+        normal at zero distance). inner.GaussNewton uses both and says why.
         """
+        out, simplex, cp, active = self._features(x)
+        if smooth and len(x):
+            feature = active.sum(axis=1) < self.cells.shape[1]
+            rows = np.flatnonzero(feature)
+            offset = x[rows] - cp[rows]
+            d = np.linalg.norm(offset, axis=1, keepdims=True)
+            out[rows] = 0.0
+            out[rows, 0] = np.where(d > 0, offset / np.where(d > 0, d, 1.0), self.normals[simplex[rows]])
+        return out
+
+    def _features(self, x):
+        """curvature_directions' exact rows, with each point's simplex, closest point and
+        active corners (the feature the closest point lies on)."""
         simplex, cp = self._query(x)
         corners = self.points[self.cells[simplex]]  # (n, k, dim)
         k = corners.shape[1]
@@ -136,4 +152,4 @@ class Surface:
             basis = np.eye(self.dim)[None] - t[:, :, None] * t[:, None, :]
             q, _ = np.linalg.qr(basis)
             out[rows, :2] = np.swapaxes(q[:, :, :2], 1, 2)
-        return out
+        return out, simplex, cp, active

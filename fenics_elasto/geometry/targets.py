@@ -44,9 +44,9 @@ class SurfaceTerm:
                 out[rows] = normal
         return out
 
-    def curvature_directions(self, y: np.ndarray) -> np.ndarray:
+    def curvature_directions(self, y: np.ndarray, smooth: bool = False) -> np.ndarray:
         out = np.zeros(y.shape + (y.shape[1],))
         for i, surface in enumerate(self.surfaces):
             rows = np.flatnonzero(self.surface_of == i)
-            out[rows] = surface.curvature_directions(y[rows])
+            out[rows] = surface.curvature_directions(y[rows], smooth)
         return out

@@ -7,7 +7,9 @@ point of its target surface, a landmark's its observed position. Almost everywhe
 dPhi/dy_l = w_l r_l, and the Gauss-Newton curvature of 1/2 |r_l|^2 is spanned by the
 directions ``Surface.curvature_directions`` gives (the normal of a face, the two
 directions across an edge, all at a vertex; all for a landmark) -- exact for a
-piecewise-linear target, which makes Gauss-Newton a Newton method here.
+piecewise-linear target, but only inside each feature's Voronoi region, a thin wedge
+at the edges and vertices of a finely faceted smooth surface: the inner fits also try
+the smooth surface's there (``gauss_newton_rows(smooth=True)``; inner.GaussNewton says why).
 
 Weights: surface rows 1; landmark rows ``landmark_weight`` (see ``landmark_weight``: from
 ``[target] landmark_noise`` beside the surfaces' noise, by maximum likelihood).
@@ -42,7 +44,7 @@ class PointTerm:
     def closest(self, y: np.ndarray) -> np.ndarray:
         return self.points
 
-    def curvature_directions(self, y: np.ndarray) -> np.ndarray:
+    def curvature_directions(self, y: np.ndarray, smooth: bool = False) -> np.ndarray:
         return np.broadcast_to(np.eye(y.shape[1]), y.shape + (y.shape[1],)).copy()
 
 
@@ -56,7 +58,7 @@ class Unobserved:
     def closest(self, y: np.ndarray) -> np.ndarray:
         return y
 
-    def curvature_directions(self, y: np.ndarray) -> np.ndarray:
+    def curvature_directions(self, y: np.ndarray, smooth: bool = False) -> np.ndarray:
         return np.zeros(y.shape + (y.shape[1],))
 
 
@@ -65,7 +67,7 @@ class Term(Protocol):
 
     def closest(self, y: np.ndarray) -> np.ndarray: ...
 
-    def curvature_directions(self, y: np.ndarray) -> np.ndarray: ...
+    def curvature_directions(self, y: np.ndarray, smooth: bool = False) -> np.ndarray: ...
 
 
 class Misfit:
@@ -100,11 +102,13 @@ class Misfit:
         """dPhi/dy = w r."""
         return self.weights[:, None] * residual
 
-    def gauss_newton_rows(self, y: np.ndarray) -> np.ndarray:
-        """(n, gdim, gdim) sqrt(w) C_l: the Gauss-Newton curvature is sum_l J_l^T C_l^T C_l J_l w_l."""
+    def gauss_newton_rows(self, y: np.ndarray, smooth: bool = False) -> np.ndarray:
+        """(n, gdim, gdim) sqrt(w) C_l: the Gauss-Newton curvature is sum_l J_l^T C_l^T C_l J_l w_l
+        (``smooth``: the smooth surfaces' curvature at their facets' edges and vertices,
+        Surface.curvature_directions)."""
         out = np.zeros(y.shape + (y.shape[1],))
         for rows, term in zip(self.slices, self.terms):
-            out[rows] = term.curvature_directions(y[rows])
+            out[rows] = term.curvature_directions(y[rows], smooth)
         return np.sqrt(self.weights)[:, None, None] * out
 
     @property

@@ -122,17 +122,20 @@ def test_full_force_space_on_surfaces_is_refused_before_any_solve(scenes, tmp_pa
 
 @pytest.mark.slow
 def test_a_scan_within_the_noise_ends_after_the_scan(tmp_path, capsys, monkeypatch):
-    """The inclusion's E ratio under noise of 2 % of the body: the Laplace interval at the
+    """The inclusion's E ratio under noise of 2.5 % of the body: the Laplace interval at the
     best scan value looked narrower than the bounds, yet after a whole estimate every
     draw's profile interval was E = 1-1000. Phi* over the start scan already showed it:
-    it rises less than the noise's 95 % threshold anywhere."""
+    it rises less than the noise's 95 % threshold anywhere. (2 % until the inner fits'
+    second model: they then found lower Phi* on this rough target, 0.263 against 0.273
+    at the best E, and the profile interval closed at E = 1.48 -- no longer open at both
+    bounds, which the last part needs.)"""
     import fenics_elasto.inverse.uncertainty.identifiability as identifiability
     from independent import noisy_copy
 
     source = build_scene("inclusion", tmp_path / "source")
     fine_simulation("inclusion", tmp_path / "fine", 0.25, ["materials.inclusion.E=50.0"])
     rng = np.random.default_rng(3)
-    noisy = {g: noisy_copy(tmp_path / "fine" / "target" / f"surface_{g}.vtp", tmp_path / f"{g}.vtp", 0.2, rng)
+    noisy = {g: noisy_copy(tmp_path / "fine" / "target" / f"surface_{g}.vtp", tmp_path / f"{g}.vtp", 0.25, rng)
              for g in ("outline", "interface")}
     table = ", ".join(f"{g}='{path}'" for g, path in noisy.items())
     assert main(["estimate", str(source), "--out", str(tmp_path / "out"), "--set", f"target.surfaces={{{table}}}"]) == 2
