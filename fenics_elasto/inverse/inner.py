@@ -112,7 +112,6 @@ class GaussNewton:
 
         q = (self.q0 if start is None else start).copy()
         y, residual, phi, prior = evaluate(q)
-        tol = self.tol
         damping, nit, converged = 1e-3, 0, False
         for nit in range(1, self.maxiter + 1):  # noqa: B007 (nit is reported after the loop)
             grad = flat.T @ misfit.gradient(residual).ravel() + alpha * (q - self.q0)
@@ -120,7 +119,7 @@ class GaussNewton:
             # The most the Gauss-Newton models promise (the undamped step's decrease, grad H^-1
             # grad / 2): below tol for both, converged without trying a step (the phantom's fits
             # spent a closest-point query, or a cascade of damped ones, on learning that).
-            if max(0.5 * float(grad @ np.linalg.solve(H, grad)) for H in hessians) <= tol * (phi + prior):
+            if max(0.5 * float(grad @ np.linalg.solve(H, grad)) for H in hessians) <= self.tol * (phi + prior):
                 converged = True
                 break
             while True:  # Levenberg-Marquardt: damp until the objective decreases; the better model's step
@@ -135,7 +134,7 @@ class GaussNewton:
                 break
             q, (y, residual, phi, prior) = q + step, trial
             damping = max(damping / 10.0, 1e-12)
-            if decrease <= tol * (phi + prior):
+            if decrease <= self.tol * (phi + prior):
                 converged = True
                 break
         return LinearFit(q, phi, prior, residual, nit, converged)
