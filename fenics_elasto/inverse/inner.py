@@ -5,8 +5,9 @@ included (the envelope theorem makes dPhi*/dtheta the partial derivative there).
 
 - ``GaussNewton`` (Levenberg-Marquardt): in boundary modes d = W q the observed
   positions are exactly y0 + J q (J: one block solve, or the surrogate's), so each
-  iteration is dense algebra plus a closest-point query. Its curvature is the smooth
-  surface's, not the facets' (``GaussNewton.fit``). A Gaussian prior
+  iteration is dense algebra plus one or two closest-point queries: two curvature
+  models, the facets' and the smooth surface's, the better step taken (``GaussNewton``).
+  A Gaussian prior
   alpha/2 |q - q0|^2 towards the surface-matched start keeps what distances cannot see
   -- nodes sliding along the target -- where matching put it. It is part of the
   objective, in value and gradient alike, with alpha fixed for the whole estimate.

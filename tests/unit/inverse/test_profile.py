@@ -565,10 +565,6 @@ class _Quadratic:
     def gradient(self, residual):
         return residual
 
-    @property
-    def count(self):
-        return len(self.target)
-
     def gauss_newton_rows(self, y, smooth=False):
         return np.broadcast_to(np.eye(y.shape[1]), (len(y), y.shape[1], y.shape[1]))
 
