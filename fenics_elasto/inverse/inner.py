@@ -148,11 +148,21 @@ class GaussNewton:
     def _hessians(self, J, y, alpha) -> list[np.ndarray]:
         """The Gauss-Newton matrices of the two models (the class's docstring): the facets'
         exact curvature, and the smooth surface's at their edges and vertices -- one when
-        no point is closest to such a feature."""
+        no point is closest to such a feature. The rows the models share are summed once:
+        on the default phantom the models differ at 4-8 of 5,522 points."""
         exact = self.misfit.gauss_newton_rows(y)
         smooth = self.misfit.gauss_newton_rows(y, smooth=True)
-        models = [exact] if np.array_equal(exact, smooth) else [exact, smooth]
-        return [A.T @ A + alpha * np.eye(J.shape[2]) for A in (self._rows_times(C, J) for C in models)]
+        differ = np.any(exact != smooth, axis=(1, 2))[:, None, None]
+        shared = self._gram(np.where(differ, 0.0, exact), J) + alpha * np.eye(J.shape[2])
+        if not differ.any():
+            return [shared]
+        return [shared + self._gram(np.where(differ, C, 0.0), J) for C in (exact, smooth)]
+
+    @classmethod
+    def _gram(cls, C, J) -> np.ndarray:
+        """(C J)^T (C J) over the nonzero rows of C."""
+        A = cls._rows_times(C, J)
+        return A.T @ A
 
     @staticmethod
     def _rows_times(C, J) -> np.ndarray:
