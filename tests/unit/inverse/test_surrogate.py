@@ -10,7 +10,7 @@ from fenics_elasto.inverse.estimator import estimate
 from fenics_elasto.mesh.builtin import build_scene
 from fenics_elasto.inverse.objective import InverseProblem
 from fenics_elasto.model.scene import load_scene
-from fenics_elasto.inverse.surrogate import MaterialSurrogate
+from fenics_elasto.inverse.surrogate import ColumnBlocks, MaterialSurrogate
 from fenics_elasto.model.responses import response_block, response_sensitivities
 from fenics_elasto.inverse.refinement import refine
 import fenics_elasto.inverse.profile as profile_module
@@ -198,6 +198,22 @@ def test_refined_on_nearby_factors_it_is_a_full_solve(inclusion):
     assert relative_error(J, problem.observation.rows(X1)) < 1e-7
     for k in range(2):
         assert relative_error(dJ[k] @ q, problem.observation.rows(dX1[k]) @ q) < 1e-7, k
+
+
+def test_column_blocks_multiply_as_the_matrix_they_hold():
+    """V kept as the blocks it grew by gives the products of the whole matrix."""
+    rng = np.random.default_rng(1)
+    blocks = [rng.standard_normal((50, width)) for width in (3, 5, 2)]
+    V = ColumnBlocks(50)
+    assert V.width == 0 and V.transposed_times(np.ones((50, 2))).shape == (0, 2)
+    for block in blocks:
+        V.append(block)
+    whole = np.hstack(blocks)
+    x, X, Y = rng.standard_normal(10), rng.standard_normal((10, 4)), rng.standard_normal((50, 4))
+    assert V.width == 10
+    assert np.allclose(V @ x, whole @ x, rtol=0, atol=1e-13)
+    assert np.allclose(V @ X, whole @ X, rtol=0, atol=1e-13)
+    assert np.allclose(V.transposed_times(Y), whole.T @ Y, rtol=0, atol=1e-13)
 
 
 def test_affine_pieces_sum_to_the_stiffness(inclusion):
