@@ -91,21 +91,30 @@ def serial_and_two_ranks(out: Path, rank: int) -> None:
         print(f"| {ranks} | {seconds:.1f} | {seconds / rows[0][1]:.2f} | {E:.2f} |")
 
 
-def profile(out: Path, rank: int) -> None:
-    target, bases, training = prepare(out, rank)
-    args = estimate_args(target, bases, out / f"rank{rank}")
+def profiled(args: list[str]) -> tuple[float, list[tuple[str, float]]]:
+    """Run the command line ``args`` of the toolkit under cProfile: its wall seconds and
+    the seconds of each of GROUPS."""
     profiler = cProfile.Profile()
     start = time.perf_counter()
     profiler.runcall(main, args)
     total = time.perf_counter() - start
     stats = pstats.Stats(profiler)
-    print(f"\nrank {rank}: estimate {total:.1f} s (training {training:.1f} s with {EXAMPLES[rank]} examples, "
-          f"{'this run' if training > 1 else 'cached'})")
+    return total, [(label, sum(cumulative(stats, path, name) for path, name in functions)) for label, functions in GROUPS]
+
+
+def print_groups(total: float, groups: list[tuple[str, float]]) -> None:
     print("| where | seconds | share |")
     print("|---|---|---|")
-    for label, functions in GROUPS:
-        seconds = sum(cumulative(stats, path, name) for path, name in functions)
+    for label, seconds in groups:
         print(f"| {label} | {seconds:.1f} | {100 * seconds / total:.0f} % |")
+
+
+def profile(out: Path, rank: int) -> None:
+    target, bases, training = prepare(out, rank)
+    total, groups = profiled(estimate_args(target, bases, out / f"rank{rank}"))
+    print(f"\nrank {rank}: estimate {total:.1f} s (training {training:.1f} s with {EXAMPLES[rank]} examples, "
+          f"{'this run' if training > 1 else 'cached'})")
+    print_groups(total, groups)
 
 
 if __name__ == "__main__":

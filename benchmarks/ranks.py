@@ -9,7 +9,11 @@ Bases: `train --synthetic N --rank r`, N = 120 for ranks 12 and 80, 400 for rank
 Every command runs in its own process, one after another on the same machine; simulate
 and estimate are timed by result.json's `wall_time_s`, train around its process.
 
-    .venv/bin/python benchmarks/ranks.py [--out DIR] [--ranks 12 80 240]
+    .venv/bin/python benchmarks/ranks.py [--out DIR] [--ranks 12 80 240] [--profile 80]
+
+``--profile R``: then the rank-R estimate once more under cProfile, its time grouped as
+in benchmarks/profile_estimate.py (where it goes, not how long it takes: the profiler
+slows it).
 """
 
 from __future__ import annotations
@@ -24,6 +28,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 import independent as ind  # noqa: E402
+import profile_estimate  # noqa: E402
 from fenics_elasto.app.study import simulate_targets  # noqa: E402
 
 TARGET_SIZE = 0.8  # cm: finer than the default phantom's 1.0
@@ -42,7 +47,7 @@ def result(folder: Path) -> dict:
     return json.loads((folder / "result.json").read_text())
 
 
-def main(out: Path, ranks: list[int]) -> None:
+def main(out: Path, ranks: list[int], profiled: list[int]) -> None:
     source = out / "phantom"
     if not (source / "problem.toml").exists():
         cli("mesh", "prostate-phantom", "--out", source)
@@ -65,11 +70,18 @@ def main(out: Path, ranks: list[int]) -> None:
     for rank, training, r in rows:
         print(f"| {rank} ({EXAMPLES[rank]}) | {training:.1f} | {training / seconds:.1f}x | {r['wall_time_s']:.1f} | "
               f"{r['wall_time_s'] / seconds:.1f}x | {r['factorizations']} | {r['materials']['prostate']['E']:.2f} |")
+    for rank in profiled:
+        args = ["estimate", target, "--out", out / f"estimate_{rank}_profiled", "--set",
+                f"reduction={{bases='{out / f'bases_{rank}.npz'}'}}"]
+        total, groups = profile_estimate.profiled(list(map(str, args)))
+        print(f"\nrank {rank}: the estimate under cProfile, {total:.1f} s")
+        profile_estimate.print_groups(total, groups)
 
 
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=Path("out/ranks"))
     parser.add_argument("--ranks", type=int, nargs="+", default=[12, 80, 240])
+    parser.add_argument("--profile", type=int, nargs="*", default=[], help="ranks whose estimate to profile after")
     arguments = parser.parse_args()
-    main(arguments.out, arguments.ranks)
+    main(arguments.out, arguments.ranks, arguments.profile)
