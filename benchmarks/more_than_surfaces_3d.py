@@ -7,7 +7,8 @@ non-affine wall motion, prostate E = 50 (tissue 10). Bases: `train --synthetic 1
 adds one kind of data:
 
 - 4 fiducials inside the prostate (exact);
-- the "emptied" state's organ surfaces (bladder emptied and sunk, rectum collapsed);
+- the "emptied" state's organ surfaces (bladder emptied and sunk, rectum collapsed),
+  and that state alone (not an addition: the case the bases are farthest from);
 - the rectum wall's total force, scikit-fem's, stated with 2 % noise, every E estimated
   (the tissue started at half its truth);
 - a displacement field: 20,000 vertices of the truth's mesh with their displacement and
@@ -57,6 +58,7 @@ def rows(filled: dict, emptied: dict, out: Path) -> dict[str, list[str]]:
         "+ 4 fiducials": [f"target={{{surfaces(filled)}, landmarks='{filled['fiducials']}'}}"],
         "+ a second state": [f"states=[{{name='filled', target={{{surfaces(filled)}}}}}, "
                              f"{{name='emptied', target={{{surfaces(emptied)}}}}}]"],
+        "the second state alone": [f"target={{{surfaces(emptied)}}}"],
         "+ a force (2 %)": [f"target={{{surfaces(filled)}}}",
                             "materials.tissue.E={estimate=true, initial=5.0, bounds=[0.5, 100.0]}",
                             f"boundary.measured_force.rectum={{value={force.tolist()}, noise={noise}}}"],

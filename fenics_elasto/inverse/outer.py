@@ -146,12 +146,7 @@ def minimize_on_surrogate(profile: Profile, surrogate: SurrogateProfile, xtol: n
              f"in the materials ({profile.surrogate.size} directions)")
     for rounds in range(1, maxiter + 1):
         x0 = start if start is not None and rounds == 1 else params.to_s(profile.best_theta())
-        # Each evaluation is a whole inner fit, exact only to the inner tolerance: stop once
-        # a step moves every constant by less than xtol / 10, not chase digits of Phi*.
-        found = None
-        if len(params) == 1 and smooth:
-            found = _bracketed_on_surrogate(surrogate, x0, list(scanned) if rounds == 1 else [], 0.1 * float(xtol[0]))
-        x, evaluations = found if found is not None else _lbfgsb_on_surrogate(surrogate, x0, 0.1 * xtol)
+        x, evaluations = surrogate_minimum(surrogate, x0, xtol, scanned if rounds == 1 else (), smooth)
         theta = params.to_theta(x)
         log.info(f"  surrogate optimum {params.describe(theta)}  (equation residual "
                  f"{profile.surrogate.residual(theta):.1e}, {evaluations} evaluations)")
@@ -159,6 +154,18 @@ def minimize_on_surrogate(profile: Profile, surrogate: SurrogateProfile, xtol: n
             return rounds
         profile.solve(theta, "outer")
     return maxiter
+
+
+def surrogate_minimum(surrogate: SurrogateProfile, x0, xtol, known=(), smooth: bool = True) -> tuple[np.ndarray, int]:
+    """The minimum of Phi* on the surrogate near x0 and the evaluations it took: for one
+    constant on a ``smooth`` Phi*, cubic steps inside a bracket (the ``known`` points',
+    (s, Phi*, dPhi*/ds) each, if they make one); else bounded L-BFGS-B."""
+    # Each evaluation is a whole inner fit, exact only to the inner tolerance: stop once
+    # a step moves every constant by less than xtol / 10, not chase digits of Phi*.
+    found = None
+    if len(surrogate.params) == 1 and smooth:
+        found = _bracketed_on_surrogate(surrogate, x0, list(known), 0.1 * float(xtol[0]))
+    return found if found is not None else _lbfgsb_on_surrogate(surrogate, x0, 0.1 * xtol)
 
 
 def _lbfgsb_on_surrogate(surrogate: SurrogateProfile, x0, xtol) -> tuple[np.ndarray, int]:

@@ -185,8 +185,12 @@ class SurrogateProfile:
 
     def fit(self, s, start: np.ndarray | None = None):
         """The inner fit (a LinearFit) at s on the surrogate, from q0 or ``start``."""
-        J, _ = self.profile.surrogate_response(self.params.to_theta(s))
+        J, _ = self.response(self.params.to_theta(s))
         return self.fit_inner.fit(J, start)
+
+    def response(self, theta) -> tuple[np.ndarray, np.ndarray]:
+        """(J, dJ/dtheta) on the surrogate."""
+        return self.profile.surrogate_response(theta)
 
     def inner_spread(self, s, starts, cold=None) -> tuple[float, np.ndarray]:
         """How far apart in Phi* the inner fits at s end from q0 (``cold``, if already
@@ -199,7 +203,26 @@ class SurrogateProfile:
 
     def value_and_gradient(self, s) -> tuple[float, np.ndarray]:
         theta = self.params.to_theta(s)
-        J, dJ = self.profile.surrogate_response(theta)
+        J, dJ = self.response(theta)
         fit = self.fit_inner.fit(J)
         self.evaluations += 1
         return fit.value, envelope_gradient(self.fit_inner.misfit, fit, dJ) * self.params.dtheta_ds(theta)
+
+
+class FewerModes(SurrogateProfile):
+    """Phi*(theta) on the surrogate with only each state's ``rank`` leading boundary modes
+    (the bases are ordered by the energy they hold): where the answer goes with fewer
+    bases, to tell whether it has settled in the rank (report.fit_of_bases). The prior's
+    weight is the full fit's; its anchor, the surface-matched start, keeps those modes."""
+
+    def __init__(self, profile: Profile, rank: int):
+        super().__init__(profile)
+        full = profile.basis.shape[1]
+        self.keep = np.concatenate([state * full + np.arange(rank) for state in range(profile.problem.states.count)])
+        inner = profile.inner
+        self.fit_inner = GaussNewton(inner.problem, inner.q0[self.keep], inner.anchor, inner.maxiter, inner.tol)
+        self.fit_inner.alpha = inner.alpha
+
+    def response(self, theta) -> tuple[np.ndarray, np.ndarray]:
+        J, dJ = self.profile.surrogate_response(theta)
+        return J[..., self.keep], dJ[..., self.keep]

@@ -3,6 +3,7 @@ hold every affine wall motion exactly, pressure examples are real forward solves
 `train --synthetic` then `estimate` recovers an E ratio from a finer-mesh target."""
 
 import json
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -12,7 +13,7 @@ from fenics_elasto.geometry.fields import SmoothFields
 from fenics_elasto.mesh.builtin import build_scene
 from fenics_elasto.inverse.objective import InverseProblem
 from fenics_elasto.inverse.estimator import Estimator, estimate
-from fenics_elasto.inverse.report import _bias_warnings
+from fenics_elasto.inverse.report import RANK_SIGMAS, _bias_warnings, half_rank_shift
 from fenics_elasto.inverse.options import Options
 from fenics_elasto.inverse.report import fit_of_bases
 from fenics_elasto.inverse.reduction.bases import Bases, missing_wall_motion, reach_warning, train_bases
@@ -185,7 +186,8 @@ def test_bases_that_miss_wall_motion_say_how_far_it_moves_E(tmp_path):
         theta, best, _ = estimator.final()
         post = estimator.uncertainty.posterior(best)
         missing = missing_wall_motion(problem, W, theta, best.evaluation, estimator.profile.linearisation(best))
-        return theta[0] / 10.0, missing, _bias_warnings(estimator.params, fit_of_bases(estimator, theta, best), post)
+        warnings = _bias_warnings(estimator.params, fit_of_bases(estimator, theta, best), post)
+        return theta[0] / 10.0, missing, [w for w in warnings if "miss wall motion" in w]  # the first-order check's
 
     ratio, missing, warned = run(W)
     predicted = ratio * np.exp(missing["shift_s"][0])
@@ -197,3 +199,33 @@ def test_bases_that_miss_wall_motion_say_how_far_it_moves_E(tmp_path):
     assert again["missing_wall_rms"] < 0.3 * missing["missing_wall_rms"]
     assert len(warned) == 1 and "inclusion.E by about +3." in warned[0], warned
     assert quiet == [], quiet
+
+
+def test_the_half_rank_shift_is_where_an_estimate_at_half_the_rank_goes(tmp_path):
+    """The answer on the surrogate with the bases cut to half their rank
+    (report.half_rank_shift: dense algebra at the answer) is the answer of a whole
+    estimate with those bases; a shift of many sigmas is warned about, one of two is not."""
+    source = build_scene("inclusion", tmp_path / "source")
+    target = inclusion_ratio_4_target(tmp_path / "fine", "boundary.displacement.top.ripple={amplitude=0.05, length=3.0, seed=2}")
+    scene = load_scene(source, [target])
+    W = train_bases(InverseProblem(scene), [], rank=12, generator=Generator(16, seed=1)).W
+
+    def answer(W):
+        estimator = Estimator(InverseProblem(scene), Options.from_scene(scene), W)
+        estimator.run()
+        theta, best, _ = estimator.final()
+        return estimator, theta
+
+    estimator, theta = answer(W)
+    shift = half_rank_shift(estimator, theta)
+    _, half = answer(W[:, :6])
+    print(f"rank 12: {theta[0]:.4f}; cut to 6 on the surrogate {theta[0] * np.exp(shift[0]):.4f}, "
+          f"estimated at rank 6 {half[0]:.4f}")
+    assert abs(shift[0]) > 0.01  # the case moves (measured -3.4 %)
+    assert abs(np.log(half[0] / theta[0]) - shift[0]) < 0.05 * abs(shift[0])
+
+    fit = {"shift_if_enriched": {"inclusion.E": 0.0}, "shift_if_enriched_s": [0.0], "missing_wall_rms": 0.0,
+           "shift_at_half_rank": {"inclusion.E": float(np.expm1(shift[0]))}, "shift_at_half_rank_s": [shift[0]]}
+    loud = _bias_warnings(estimator.params, fit, SimpleNamespace(std_s=np.array([abs(shift[0]) / (2 * RANK_SIGMAS)])))
+    quiet = _bias_warnings(estimator.params, fit, SimpleNamespace(std_s=np.array([abs(shift[0]) / 2])))
+    assert len(loud) == 1 and "half their rank" in loud[0] and quiet == [], (loud, quiet)
