@@ -48,8 +48,9 @@ def describe_offset(post: Posterior) -> list[str]:
 
 def fit_of_bases(estimator: Estimator, theta, best: InnerResult, post: Posterior | None = None) -> dict | None:
     """result.json's ``bases_fit``: the share of the surface-matched wall motion the bases
-    span, and how far the estimate moves when they may also use what they miss
-    (reduction.missing_wall_motion; relative for E, absolute for nu)."""
+    span, how far the estimate moves when they may also use what they miss
+    (reduction.missing_wall_motion) and when they are cut to half their rank
+    (half_rank_shift); relative for E, absolute for nu."""
     fit = bases_fit(estimator.basis, np.stack(estimator.problem.states.split(estimator.d0), axis=1))
     lin = estimator.profile.linearisation(best)
     if fit is None or lin is None:
@@ -108,7 +109,7 @@ def run_warnings(estimator: Estimator, theta, interrupted: bool, fit=None, post=
     if fit is not None and fit["wall_motion_explained"] < 0.9:
         out.append(f"the bases explain {100 * fit['wall_motion_explained']:.0f} % of the wall motion surface "
                    "matching finds; train with more or other examples (e.g. --synthetic)")
-    out += _bias_warnings(estimator.params, fit, post)
+    out += _bias_warnings(estimator.params, fit, post) + _rank_warnings(estimator.params, fit, post)
     return out
 
 
@@ -130,8 +131,17 @@ def _bias_warnings(params, fit, post) -> list[str]:
             out.append(f"the bases miss wall motion (rms {fit['missing_wall_rms']:.3g}) that would move {label} by "
                        f"about {moved} (first order), more than its interval says: train with more or other examples "
                        "(--synthetic N with a higher rank)")
-    for label, is_E, shift, shift_s, sd in zip(params.labels, params.is_E, fit.get("shift_at_half_rank", {}).values(),
-                                                fit.get("shift_at_half_rank_s", ()), std):
+    return out
+
+
+def _rank_warnings(params, fit, post) -> list[str]:
+    """An answer that moves by RANK_SIGMAS or more when the bases are cut to half their
+    rank (half_rank_shift): not settled in the rank."""
+    if not fit or "shift_at_half_rank_s" not in fit or post is None:
+        return []
+    out = []
+    for label, is_E, shift, shift_s, sd in zip(params.labels, params.is_E, fit["shift_at_half_rank"].values(),
+                                                fit["shift_at_half_rank_s"], post.std_s):
         if sd > 0 and abs(shift_s) > max(BIAS_MIN[0] if is_E else BIAS_MIN[1], RANK_SIGMAS * sd):
             moved = f"{100 * shift:+.0f} %" if is_E else f"{shift:+.3f}"
             out.append(f"{label} moves by {moved} ({abs(shift_s) / sd:.0f} sigma) when the bases are cut to half "
