@@ -156,15 +156,20 @@ def minimize_on_surrogate(profile: Profile, surrogate: SurrogateProfile, xtol: n
     return maxiter
 
 
-def surrogate_minimum(surrogate: SurrogateProfile, x0, xtol, known=(), smooth: bool = True) -> tuple[np.ndarray, int]:
+BRACKET_STEP = 0.02  # _bracketed_on_surrogate: the first trial step around the start, in s (2 % of E)
+
+
+def surrogate_minimum(surrogate: SurrogateProfile, x0, xtol, known=(), smooth: bool = True,
+                      step: float = BRACKET_STEP) -> tuple[np.ndarray, int]:
     """The minimum of Phi* on the surrogate near x0 and the evaluations it took: for one
     constant on a ``smooth`` Phi*, cubic steps inside a bracket (the ``known`` points',
-    (s, Phi*, dPhi*/ds) each, if they make one); else bounded L-BFGS-B."""
+    (s, Phi*, dPhi*/ds) each, if they make one, else one made by steps from x0 that
+    double from ``step``); else bounded L-BFGS-B."""
     # Each evaluation is a whole inner fit, exact only to the inner tolerance: stop once
     # a step moves every constant by less than xtol / 10, not chase digits of Phi*.
     found = None
     if len(surrogate.params) == 1 and smooth:
-        found = _bracketed_on_surrogate(surrogate, x0, list(known), 0.1 * float(xtol[0]))
+        found = _bracketed_on_surrogate(surrogate, x0, list(known), 0.1 * float(xtol[0]), step)
     return found if found is not None else _lbfgsb_on_surrogate(surrogate, x0, 0.1 * xtol)
 
 
@@ -180,10 +185,8 @@ def _lbfgsb_on_surrogate(surrogate: SurrogateProfile, x0, xtol) -> tuple[np.ndar
     return res.x, int(res.nfev)
 
 
-BRACKET_STEP = 0.02  # _bracketed_on_surrogate: the first trial step around the start, in s (2 % of E)
-
-
-def _bracketed_on_surrogate(surrogate: SurrogateProfile, x0, known: list, xtol: float) -> tuple[np.ndarray, int] | None:
+def _bracketed_on_surrogate(surrogate: SurrogateProfile, x0, known: list, xtol: float,
+                            first_step: float = BRACKET_STEP) -> tuple[np.ndarray, int] | None:
     """The minimum of one constant by cubic steps on the surrogate, from the ``known``
     points or, without a bracket among them, from x0 and steps downhill of it that
     double until the slope turns (at most 6; None at a bound or beyond: L-BFGS-B then).
@@ -201,7 +204,7 @@ def _bracketed_on_surrogate(surrogate: SurrogateProfile, x0, known: list, xtol: 
         low, high = surrogate.params.s_bounds()[0]
         x = float(x0[0])
         points = [(x, *slope(x))]
-        step = -np.sign(points[0][2]) * BRACKET_STEP
+        step = -np.sign(points[0][2]) * first_step
         for _ in range(6):
             trial = float(np.clip(x + step, low, high))
             if trial == points[-1][0]:

@@ -10,7 +10,7 @@ import numpy as np
 
 from fenics_elasto.inverse.inner import InnerResult
 from fenics_elasto.util.logs import log
-from fenics_elasto.inverse.outer import surrogate_minimum
+from fenics_elasto.inverse.outer import BRACKET_STEP, surrogate_minimum
 from fenics_elasto.inverse.profile import FewerModes
 from fenics_elasto.inverse.uncertainty.posterior import Posterior
 from fenics_elasto.inverse.reduction.bases import bases_fit, missing_wall_motion
@@ -79,8 +79,9 @@ def half_rank_shift(estimator: Estimator, theta, std_s=None) -> np.ndarray | Non
     cannot see a wall motion far from the training's: the pelvis phantom's "emptied"
     state, rank 80, gave E 85 (truth 50, interval 74-99) with that shift at -1.4 %, and
     E 179 at rank 40 (50.8 at rank 240). Found to a quarter of the noise's std
-    ``std_s`` where given: it is compared with RANK_SIGMAS of them (that case: 17 -> 4
-    evaluations, 52 -> 23 s). None without a surrogate or below rank 4."""
+    ``std_s`` where given, which it is compared with (RANK_SIGMAS of them), its bracket
+    made in steps of that std (that case: 52 s, then 23 s, then 15.5 s). None without a
+    surrogate or below rank 4."""
     rank = None if estimator.basis is None else estimator.basis.shape[1]
     if estimator.surrogate is None or rank is None or rank < 4:
         return None
@@ -88,9 +89,11 @@ def half_rank_shift(estimator: Estimator, theta, std_s=None) -> np.ndarray | Non
     fewer = FewerModes(estimator.profile, rank // 2)
     s = params.to_s(theta)
     xtol = estimator.options.outer_xtol * np.where(params.is_E, 1.0, 0.1)
-    if std_s is not None:  # surrogate_minimum stops at a tenth of xtol
+    step = BRACKET_STEP
+    if std_s is not None:  # surrogate_minimum stops at a tenth of xtol; a bracket made in sigmas
         xtol = np.maximum(xtol, 2.5 * np.asarray(std_s, float))
-    x, evaluations = surrogate_minimum(fewer, s, xtol, smooth=not estimator.problem.misfit.rough())
+        step = max(step, float(np.min(std_s)))
+    x, evaluations = surrogate_minimum(fewer, s, xtol, smooth=not estimator.problem.misfit.rough(), step=step)
     log.info(f"the bases cut to rank {rank // 2}: {params.describe(params.to_theta(x))} on the surrogate "
              f"({evaluations} evaluations, {time.perf_counter() - start:.1f} s)")
     return np.asarray(x, float) - s
