@@ -61,7 +61,7 @@ def main(out: Path, ranks: list[int], profiled: list[int]) -> None:
         bases = out / f"bases_{rank}.npz"
         training = cli("train", problem, "--synthetic", EXAMPLES[rank], "--rank", rank, "--out", bases)
         folder = out / f"estimate_{rank}"
-        cli("estimate", target, "--out", folder, "--set", f"reduction={{bases='{bases}'}}")
+        cli(*profile_estimate.estimate_args(target, bases, folder))
         rows.append((rank, training, result(folder)))
     seconds = simulated["wall_time_s"]
     print(f"\ndefault phantom: {simulated['dofs']:,} DOFs; one simulate {seconds:.1f} s")
@@ -71,9 +71,8 @@ def main(out: Path, ranks: list[int], profiled: list[int]) -> None:
         print(f"| {rank} ({EXAMPLES[rank]}) | {training:.1f} | {training / seconds:.1f}x | {r['wall_time_s']:.1f} | "
               f"{r['wall_time_s'] / seconds:.1f}x | {r['factorizations']} | {r['materials']['prostate']['E']:.2f} |")
     for rank in profiled:
-        args = ["estimate", target, "--out", out / f"estimate_{rank}_profiled", "--set",
-                f"reduction={{bases='{out / f'bases_{rank}.npz'}'}}"]
-        total, groups = profile_estimate.profiled(list(map(str, args)))
+        args = profile_estimate.estimate_args(target, out / f"bases_{rank}.npz", out / f"estimate_{rank}_profiled")
+        total, groups = profile_estimate.profiled(args)
         print(f"\nrank {rank}: the estimate under cProfile, {total:.1f} s")
         profile_estimate.print_groups(total, groups)
 

@@ -146,11 +146,17 @@ class Estimator:
             return self.problem.forward.reaction_forces(theta, self.problem.forward.from_boundary(theta, self.d0))
         return self.problem.states.to_controls(self.basis, self.d0)
 
+    @property
+    def xtol(self) -> np.ndarray:
+        """How finely the outer loop places each constant, in s: outer_xtol in log E, a
+        tenth of it in nu."""
+        return self.options.outer_xtol * np.where(self.params.is_E, 1.0, 0.1)
+
     def run(self) -> None:
         """Scan, check the data determine the materials, minimise Phi*, polish."""
         n = self.options.scan if len(self.params) == 1 else max(2, min(self.options.scan, 3))
         points = scan_grid(self.params, n) if self.options.scan > 1 else []  # scan = 1: the initial values only
-        xtol = self.options.outer_xtol * np.where(self.params.is_E, 1.0, 0.1)
+        xtol = self.xtol
         if self.surrogate is None:
             points = [self.params.initial] + points
             log.info(f"scan of {len(points)} material values (start: surface matching; inner: {self.inner_name})")

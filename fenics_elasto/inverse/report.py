@@ -88,8 +88,7 @@ def half_rank_shift(estimator: Estimator, theta, std_s=None) -> np.ndarray | Non
     start, params = time.perf_counter(), estimator.params
     fewer = FewerModes(estimator.profile, rank // 2)
     s = params.to_s(theta)
-    xtol = estimator.options.outer_xtol * np.where(params.is_E, 1.0, 0.1)
-    step = BRACKET_STEP
+    xtol, step = estimator.xtol, BRACKET_STEP
     if std_s is not None:  # surrogate_minimum stops at a tenth of xtol; a bracket made in sigmas
         xtol = np.maximum(xtol, 2.5 * np.asarray(std_s, float))
         step = max(step, float(np.min(std_s)))
