@@ -258,7 +258,7 @@ def _run(estimator: Estimator, warnings: list[str], extent_warnings: list[str], 
         post.offset = target_offset(problem.misfit, lin, best.evaluation)
     if post is not None and not interrupted:
         estimator.uncertainty.profile_likelihood_interval(post)
-    fit = fit_of_bases(estimator, theta, best, post)
+    fit = fit_of_bases(estimator, theta, best, post, interrupted)
     if post is not None and not interrupted:
         add_model_error(problem, post, theta, best.evaluation, estimator.profile.linearisation(best), fit)
     uncertainty_seconds = time.perf_counter() - clock

@@ -160,36 +160,39 @@ BRACKET_STEP = 0.02  # _bracketed_on_surrogate: the first trial step around the 
 
 
 def surrogate_minimum(surrogate: SurrogateProfile, x0, xtol, known=(), smooth: bool = True,
-                      step: float = BRACKET_STEP) -> tuple[np.ndarray, int]:
+                      step: float = BRACKET_STEP, bounds=None) -> tuple[np.ndarray, int]:
     """The minimum of Phi* on the surrogate near x0 and the evaluations it took: for one
     constant on a ``smooth`` Phi*, cubic steps inside a bracket (the ``known`` points',
     (s, Phi*, dPhi*/ds) each, if they make one, else one made by steps from x0 that
-    double from ``step``); else bounded L-BFGS-B."""
+    double from ``step``); else bounded L-BFGS-B. Within ``bounds`` (per constant, in s;
+    the parameters' own by default)."""
     # Each evaluation is a whole inner fit, exact only to the inner tolerance: stop once
     # a step moves every constant by less than xtol / 10, not chase digits of Phi*.
+    bounds = surrogate.params.s_bounds() if bounds is None else bounds
     found = None
     if len(surrogate.params) == 1 and smooth:
-        found = _bracketed_on_surrogate(surrogate, x0, list(known), 0.1 * float(xtol[0]), step)
-    return found if found is not None else _lbfgsb_on_surrogate(surrogate, x0, 0.1 * xtol)
+        found = _bracketed_on_surrogate(surrogate, x0, list(known), 0.1 * float(xtol[0]), step, bounds[0])
+    return found if found is not None else _lbfgsb_on_surrogate(surrogate, x0, 0.1 * xtol, bounds)
 
 
-def _lbfgsb_on_surrogate(surrogate: SurrogateProfile, x0, xtol) -> tuple[np.ndarray, int]:
+def _lbfgsb_on_surrogate(surrogate: SurrogateProfile, x0, xtol, bounds) -> tuple[np.ndarray, int]:
     scale = max(surrogate.profile.best().value, 1e-300)
 
     def scaled(s):
         value, gradient = surrogate.value_and_gradient(s)
         return value / scale, gradient / scale
 
-    res = minimize(scaled, x0, jac=True, method="L-BFGS-B", bounds=surrogate.params.s_bounds(),
+    res = minimize(scaled, x0, jac=True, method="L-BFGS-B", bounds=bounds,
                    callback=Settle(x0, xtol), options={"maxiter": 100, "ftol": 1e-14, "gtol": 1e-10})
     return res.x, int(res.nfev)
 
 
 def _bracketed_on_surrogate(surrogate: SurrogateProfile, x0, known: list, xtol: float,
-                            first_step: float = BRACKET_STEP) -> tuple[np.ndarray, int] | None:
+                            first_step: float, bounds) -> tuple[np.ndarray, int] | None:
     """The minimum of one constant by cubic steps on the surrogate, from the ``known``
     points or, without a bracket among them, from x0 and steps downhill of it that
-    double until the slope turns (at most 6; None at a bound or beyond: L-BFGS-B then).
+    double until the slope turns (at most 6; a bound the slope still falls at is the
+    minimum; None if none turns: L-BFGS-B then).
     (The phantom's rank-80 estimate: L-BFGS-B spent 22 + 18 inner fits here, each ~45
     closest-point queries on the target.)"""
     points = [(float(s[0]), float(v), float(g[0])) for s, v, g in known]
@@ -201,14 +204,14 @@ def _bracketed_on_surrogate(surrogate: SurrogateProfile, x0, known: list, xtol: 
         return float(value), float(gradient[0])
 
     if not _brackets(points):
-        low, high = surrogate.params.s_bounds()[0]
+        low, high = bounds
         x = float(x0[0])
         points = [(x, *slope(x))]
         step = -np.sign(points[0][2]) * first_step
         for _ in range(6):
             trial = float(np.clip(x + step, low, high))
-            if trial == points[-1][0]:
-                return None
+            if trial == points[-1][0]:  # at the bound, still downhill (else it would bracket)
+                return np.array([trial]), len(evaluated)
             points.append((trial, *slope(trial)))
             if _brackets(points):
                 break

@@ -9,6 +9,7 @@ import time
 import numpy as np
 
 from fenics_elasto.inverse.inner import InnerResult
+from fenics_elasto.model.scene import shift_in_units
 from fenics_elasto.util.logs import log
 from fenics_elasto.inverse.outer import BRACKET_STEP, surrogate_minimum
 from fenics_elasto.inverse.profile import FewerModes
@@ -46,18 +47,20 @@ def describe_offset(post: Posterior) -> list[str]:
             f"would move {', '.join(moved)} (first order)"]
 
 
-def fit_of_bases(estimator: Estimator, theta, best: InnerResult, post: Posterior | None = None) -> dict | None:
+def fit_of_bases(estimator: Estimator, theta, best: InnerResult, post: Posterior | None = None,
+                 interrupted: bool = False) -> dict | None:
     """result.json's ``bases_fit``: the share of the surface-matched wall motion the bases
     span, how far the estimate moves when they may also use what they miss
     (reduction.missing_wall_motion) and when they are cut to half their rank
-    (half_rank_shift); relative for E, absolute for nu."""
+    (half_rank_shift); relative for E, absolute for nu. After an ``interrupted`` run
+    the share only: the two moves cost fits a user who stopped the run is not waiting for."""
     fit = bases_fit(estimator.basis, np.stack(estimator.problem.states.split(estimator.d0), axis=1))
     lin = estimator.profile.linearisation(best)
-    if fit is None or lin is None:
+    if fit is None or lin is None or interrupted:
         return fit
     missing = missing_wall_motion(estimator.problem, estimator.basis, theta, best.evaluation, lin)
     params = estimator.params
-    shift = np.where(params.is_E, np.expm1(missing["shift_s"]), missing["shift_s"])
+    shift = shift_in_units(params.is_E, missing["shift_s"])
     B, _ = lin.profiled()  # what of each constant's effect the forces cannot mimic, per residual row
     signal = np.sqrt(np.sum(B**2, axis=0) / max(lin.informative, 1)) * np.log1p(SIGNAL_CHANGE)
     out = {**fit, "missing_wall_rms": missing["missing_wall_rms"],
@@ -67,7 +70,7 @@ def fit_of_bases(estimator: Estimator, theta, best: InnerResult, post: Posterior
     half = half_rank_shift(estimator, theta, None if post is None else post.noise_part_s)
     if half is not None:
         out["shift_at_half_rank"] = {label: float(v) for label, v in
-                                     zip(params.labels, np.where(params.is_E, np.expm1(half), half))}
+                                     zip(params.labels, shift_in_units(params.is_E, half))}
         out["shift_at_half_rank_s"] = [float(v) for v in half]
     return out
 
@@ -80,19 +83,25 @@ def half_rank_shift(estimator: Estimator, theta, std_s=None) -> np.ndarray | Non
     state, rank 80, gave E 85 (truth 50, interval 74-99) with that shift at -1.4 %, and
     E 179 at rank 40 (50.8 at rank 240). Found to a quarter of the noise's std
     ``std_s`` where given, which it is compared with (RANK_SIGMAS of them), its bracket
-    made in steps of that std (that case: 52 s, then 23 s, then 15.5 s). None without a
-    surrogate or below rank 4."""
+    made in steps of that std (that case: 52 s, then 23 s, then 15.5 s) and kept within
+    RANK_REACH of them: a move that far is reported at that edge, a lower bound (the
+    fits far from the answer are the costly ones). None without a surrogate or below
+    rank 4."""
     rank = None if estimator.basis is None else estimator.basis.shape[1]
     if estimator.surrogate is None or rank is None or rank < 4:
         return None
     start, params = time.perf_counter(), estimator.params
     fewer = FewerModes(estimator.profile, rank // 2)
     s = params.to_s(theta)
-    xtol, step = estimator.xtol, BRACKET_STEP
+    xtol, step, bounds = estimator.xtol, BRACKET_STEP, params.s_bounds()
     if std_s is not None:  # surrogate_minimum stops at a tenth of xtol; a bracket made in sigmas
-        xtol = np.maximum(xtol, 2.5 * np.asarray(std_s, float))
+        std_s = np.asarray(std_s, float)
+        xtol = np.maximum(xtol, 2.5 * std_s)
         step = max(step, float(np.min(std_s)))
-    x, evaluations = surrogate_minimum(fewer, s, xtol, smooth=not estimator.problem.misfit.rough(), step=step)
+        bounds = [(max(low, x - RANK_REACH * sd), min(high, x + RANK_REACH * sd)) if sd > 0 else (low, high)
+                  for (low, high), x, sd in zip(bounds, s, std_s)]
+    x, evaluations = surrogate_minimum(fewer, s, xtol, smooth=not estimator.problem.misfit.rough(), step=step,
+                                       bounds=bounds)
     log.info(f"the bases cut to rank {rank // 2}: {params.describe(params.to_theta(x))} on the surrogate "
              f"({evaluations} evaluations, {time.perf_counter() - start:.1f} s)")
     return np.asarray(x, float) - s
@@ -146,7 +155,8 @@ def _rank_warnings(params, fit, post) -> list[str]:
                                                 fit["shift_at_half_rank_s"], post.std_s):
         if sd > 0 and abs(shift_s) > max(BIAS_MIN[0] if is_E else BIAS_MIN[1], RANK_SIGMAS * sd):
             moved = f"{100 * shift:+.0f} %" if is_E else f"{shift:+.3f}"
-            out.append(f"{label} moves by {moved} ({abs(shift_s) / sd:.0f} sigma) when the bases are cut to half "
+            far = "at least " if abs(shift_s) >= (1 - 1e-6) * RANK_REACH * sd else ""
+            out.append(f"{label} moves by {far}{moved} ({far}{abs(shift_s) / sd:.0f} sigma) when the bases are cut to half "
                        "their rank: it has not settled in the rank, and more bases may move it as far -- train with "
                        "more examples and a higher rank (--synthetic N --rank R), or bases from motion like this case's")
     return out
@@ -156,6 +166,7 @@ def _rank_warnings(params, fit, post) -> list[str]:
 # state moved 1.8 sigma (E 50.0 -> 55.2 at rank 40 of 80, truth 50), its emptied state
 # 10 sigma (85 -> 179; truth 50, reached at rank 240).
 RANK_SIGMAS = 4.0
+RANK_REACH = 8.0  # ... searched for within this many stds of the answer: far enough to tell a warning
 
 
 def record(estimator: Estimator, theta, best: InnerResult, phi_undeformed, warnings, interrupted, start) -> dict:

@@ -124,6 +124,13 @@ class Scene:
         return scene_from_mesh(mesh, cell_tags, facet_tags, regions, groups, materials, boundary, degree, plane, settings)
 
 
+def shift_in_units(is_E, ds) -> np.ndarray:
+    """A move in s = (log E, nu) as each constant reads it: relative for E (0.05 is
+    +5 %), absolute for nu."""
+    ds = np.asarray(ds, float)
+    return np.where(is_E, np.expm1(ds), ds)
+
+
 class Parameters:
     """The estimated constants theta -- (material, "E" or "nu") in scene order -- and the
     map theta -> (E, nu) of every region. The optimiser works in s = (log E, nu): E

@@ -42,6 +42,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from fenics_elasto.inverse.linearisation import Linearisation
+from fenics_elasto.model.scene import shift_in_units
 from fenics_elasto.inverse.uncertainty.profile_interval import Z95, profile_std
 
 
@@ -206,13 +207,13 @@ def posterior_record(post: Posterior) -> dict:
         out["widened"] = labelled(post.widening)
     if post.offset is not None:
         delta, ds = post.offset
-        shift = np.where(post.is_E, np.expm1(ds), ds)
+        shift = shift_in_units(post.is_E, ds)
         out["target_offset"] = {"offset": delta, "shift": {label: float(v) if np.isfinite(v) else None
                                                             for label, v in zip(post.labels, shift)}}
     if post.inner_spread is not None:
         out["inner_spread"] = post.inner_spread
     if post.mesh_shift_s is not None:
-        out["mesh_shift"] = labelled(np.where(post.is_E, np.expm1(post.mesh_shift_s), post.mesh_shift_s))
+        out["mesh_shift"] = labelled(shift_in_units(post.is_E, post.mesh_shift_s))
     if len(post.labels) > 1:
         out["correlation"] = post.correlation().tolist()
     return out

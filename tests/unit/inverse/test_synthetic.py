@@ -13,9 +13,9 @@ from fenics_elasto.geometry.fields import SmoothFields
 from fenics_elasto.mesh.builtin import build_scene
 from fenics_elasto.inverse.objective import InverseProblem
 from fenics_elasto.inverse.estimator import Estimator, estimate
-from fenics_elasto.inverse.report import RANK_SIGMAS, _bias_warnings, _rank_warnings, half_rank_shift
+from fenics_elasto.inverse.report import (RANK_REACH, RANK_SIGMAS, _bias_warnings, _rank_warnings, fit_of_bases,
+                                         half_rank_shift)
 from fenics_elasto.inverse.options import Options
-from fenics_elasto.inverse.report import fit_of_bases
 from fenics_elasto.inverse.reduction.bases import Bases, missing_wall_motion, reach_warning, train_bases
 from fenics_elasto.model.scene import load_scene
 from fenics_elasto.inverse.reduction.synthetic import Generator, affine_basis, pressure_examples
@@ -227,3 +227,15 @@ def test_the_half_rank_shift_is_where_an_estimate_at_half_the_rank_goes(tmp_path
     loud = _rank_warnings(estimator.params, fit, SimpleNamespace(std_s=np.array([abs(shift[0]) / (2 * RANK_SIGMAS)])))
     quiet = _rank_warnings(estimator.params, fit, SimpleNamespace(std_s=np.array([abs(shift[0]) / 2])))
     assert len(loud) == 1 and "half their rank" in loud[0] and quiet == [], (loud, quiet)
+
+    # beyond RANK_REACH stds the search stops at that edge, and the warning says "at least"
+    sd = 0.75 * abs(shift[0]) / RANK_REACH  # the edge at 3/4 of the way: still above BIAS_MIN
+    capped = half_rank_shift(estimator, theta, std_s=np.array([sd]))
+    fit = {"shift_at_half_rank": {"inclusion.E": float(np.expm1(capped[0]))}, "shift_at_half_rank_s": [capped[0]]}
+    far = _rank_warnings(estimator.params, fit, SimpleNamespace(std_s=np.array([sd])))
+    assert np.isclose(capped[0], np.sign(shift[0]) * RANK_REACH * sd, rtol=1e-9), (capped, shift)
+    assert len(far) == 1 and "at least" in far[0], far
+
+    _, best, _ = estimator.final()  # a user who stopped the run gets the share explained, not two more searches
+    assert "shift_at_half_rank" in fit_of_bases(estimator, theta, best)
+    assert "shift_at_half_rank" not in fit_of_bases(estimator, theta, best, interrupted=True)
