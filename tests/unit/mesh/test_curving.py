@@ -68,8 +68,9 @@ def _surface_as_points(gmsh, surface: curving.Surface) -> set:
 
 def test_midpoints_land_on_the_smooth_surfaces_and_flat_faces_stay():
     """On the ball (an interface) and the tube (a cavity with flat caps): the curved
-    midpoints lie over 8x closer to the exact surfaces than the chords' midpoints
-    (measured: 22x on the ball, 12x on the tube, whose rims follow their circles); the
+    midpoints lie over 16x closer to the exact surfaces than the chords' midpoints
+    (measured: 24x on the ball, 21x on the tube, whose rims follow their circles; PN
+    triangles' cubic gave 22x and 12x); the
     box's faces and edges and the tube's caps stay exactly flat."""
     with GmshModel("curving") as gmsh:
         _box_with_ball_and_tube(gmsh, 0.45)
@@ -86,7 +87,7 @@ def test_midpoints_land_on_the_smooth_surfaces_and_flat_faces_stay():
         assert not curving.straight_sided(gmsh, 3)
         for level in (_ball, _tube):
             curved, chord = _curved_and_chord(gmsh, level, edge_points)
-            assert len(curved) > 100 and np.mean(curved) < np.mean(chord) / 8, (np.mean(curved), np.mean(chord))
+            assert len(curved) > 100 and np.mean(curved) < np.mean(chord) / 16, (np.mean(curved), np.mean(chord))
         position = node_positions(gmsh)
         for axis in range(3):  # the box's six faces: every node on them exactly flat
             for side in (-3.0, 3.0):
