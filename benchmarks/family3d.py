@@ -26,6 +26,12 @@ from fenics_elasto.app.cli import main  # noqa: E402
 
 def run_case(out: Path, order: int, seed: int, E: float, extra: list[str], data: str = "both") -> dict:
     problem = ind.plain_source(out / "sources", order, seed=seed)
+    return estimate_on(problem, out, f"o{order}-s{seed}", seed, E, extra, data)
+
+
+def estimate_on(problem: Path, out: Path, name: str, seed: int, E: float, extra: list[str], data: str = "both") -> dict:
+    """The README's workflow on the source ``problem`` (seed ``seed``'s geometry): bases
+    beside it, then the estimate of the truth at E into out/<name>-...; its result.json."""
     straight = "curve='off'" in extra  # bases on the nodes as the estimate sees them
     bases = problem.parent / ("bases_straight.npz" if straight else "bases.npz")
     if not bases.is_file():
@@ -36,7 +42,7 @@ def run_case(out: Path, order: int, seed: int, E: float, extra: list[str], data:
     observed = {"surfaces": surfaces} if data == "surfaces" else {"surfaces": surfaces, "landmarks": files["fiducials"]}
     target = ind.retarget(problem, observed, name=f"problem_E{E:g}_{data}.toml")
     tag = "-".join(s.replace("'", "").replace("=", "") for s in extra)
-    result_dir = out / f"o{order}-s{seed}-E{E:g}-{data}{'-' + tag if tag else ''}"
+    result_dir = out / f"{name}-E{E:g}-{data}{'-' + tag if tag else ''}"
     args = ["estimate", str(target), "--out", str(result_dir), "--set", f"reduction={{bases='{bases}'}}"]
     for setting in extra:
         args += ["--set", setting]

@@ -949,16 +949,18 @@ matched = ["bladder", "prostate_surface", "rectum"]
 
 
 def plain_source(out, order: int, seed: int = 0, organs_size: float = 0.45, far: float = 1.5,
-                 E: float = 10.0, nu: float = 0.4) -> Path:
+                 E: float = 10.0, nu: float = 0.4, optimize: int = 2) -> Path:
     """The phantom of ``phantom_organs(seed)`` meshed the way most users' meshes are
     made: gmsh's default algorithms at ``order`` 1 (straight-sided tetrahedra) or 2
-    (curved, untangled by gmsh's high-order optimiser), element size ``organs_size``
-    at the bladder, rectum and prostate and ``far`` elsewhere (about 3k vertices at
-    the defaults). Returns the path of a problem.toml beside ``source.msh`` (no
-    [target] table: ``retarget`` adds one)."""
+    (curved, untangled by gmsh's high-order optimiser: ``optimize`` is its
+    Mesh.HighOrderOptimize), element size ``organs_size`` at the bladder, rectum and
+    prostate and ``far`` elsewhere (about 3k vertices at the defaults). Returns the path
+    of a problem.toml beside ``source.msh`` (no [target] table: ``retarget`` adds one)."""
     from fenics_elasto.mesh.builtin import phantom_organs
 
     params = {"order": order, "seed": seed, "organs": organs_size, "far": far, "E": E, "nu": nu}
+    if order == 2 and optimize != 2:
+        params["optimize"] = optimize
 
     def make(folder):
         with gmsh_model("plain-source") as gmsh:
@@ -968,7 +970,7 @@ def plain_source(out, order: int, seed: int = 0, organs_size: float = 0.45, far:
             field.setAsBackgroundMesh(_graded(field, near, organs_size, far))
             for option, value in (("MeshSizeExtendFromBoundary", 0), ("MeshSizeFromPoints", 0),
                                   ("MeshSizeFromCurvature", 0), ("ElementOrder", order),
-                                  ("HighOrderOptimize", 2 if order == 2 else 0)):
+                                  ("HighOrderOptimize", optimize if order == 2 else 0)):
                 gmsh.option.setNumber(f"Mesh.{option}", value)
             gmsh.option.setNumber("General.NumThreads", 1)
             gmsh.model.mesh.generate(3)

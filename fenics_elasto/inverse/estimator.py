@@ -30,7 +30,9 @@ from fenics_elasto.geometry.matching import match_surface
 from fenics_elasto.geometry.targets import SurfaceTerm
 from fenics_elasto.inverse.checks import check_determined, check_extent, check_overlap, target_warnings
 from fenics_elasto.inverse.inner import LBFGS, GaussNewton, InnerResult
-from fenics_elasto.inverse.measured_force import apply_measured_force, measured_forces
+from fenics_elasto.inverse.linearisation import ProfiledLinearisation
+from fenics_elasto.inverse.measured_force import (apply_measured_force, measured_forces,
+                                                  predicted_force_covariances)
 from fenics_elasto.inverse.misfit import PointTerm
 from fenics_elasto.inverse.objective import Evaluation, InverseProblem
 from fenics_elasto.inverse.options import Options
@@ -60,6 +62,7 @@ class EstimateResult:
     evaluation: Evaluation
     record: dict = field(default_factory=dict)  # result.json
     state_forces: dict[str, np.ndarray] = field(default_factory=dict)  # several states: each one's forces
+    force_covariance: dict[str, np.ndarray] = field(default_factory=dict)  # measured forces' predictions' (fit's units)
 
     def __getitem__(self, key):
         return self.record[key]
@@ -285,6 +288,17 @@ def _run(estimator: Estimator, warnings: list[str], extent_warnings: list[str], 
                         for name, u in zip(problem.states.names, best.evaluation.fields)}
         record["states"] = {name: {"distances": distances, "forces": f"forces_{name}.csv"}
                             for name, distances in problem.states.distances(best.evaluation.residual).items()}
+    force_covariance = _force_covariance(estimator, theta, best, post) if not interrupted else {}
     record["wall_time_s"] = round(time.perf_counter() - start, 3)
     return EstimateResult(theta, list(problem.params.labels), best.evaluation.u, forces, best.evaluation, record,
-                          state_forces)
+                          state_forces, force_covariance)
+
+
+def _force_covariance(estimator: Estimator, theta, best: InnerResult, post) -> dict[str, np.ndarray]:
+    """The measured forces' predictions' covariances (measured_force.predicted_force_covariances),
+    while the answer's factors are held; none without measured forces or the controls' Jacobian."""
+    measured = measured_forces(estimator.problem.scene)
+    lin = estimator.profile.linearisation(best)
+    if not measured or post is None or lin is None or isinstance(lin, ProfiledLinearisation):
+        return {}
+    return predicted_force_covariances(estimator.problem, estimator.basis, theta, lin, post.noise_std, measured)

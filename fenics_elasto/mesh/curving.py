@@ -17,7 +17,7 @@ facets:
 - an edge inside a patch follows the circular arc through its ends that meets the
   planes of their normals at the angles the chord makes with them (their mean, phi):
   its midpoint is (a + b) / 2 + (|b - a| / 2) tan(phi / 2) along n_a + n_b -- exact on a
-  sphere or a cylinder's circles, and nothing moves on a flat patch. (The cubic of PN
+  sphere and along a cylinder's circles, and nothing moves on a flat patch. (The cubic of PN
   triangles, (a + b) / 2 - (w_ab n_a + w_ba n_b) / 8 with w_ab = (b - a) . n_a, falls
   short of the arc by 3/8 R phi^4: on the pelvis phantom's prostate (edge 0.45, radii
   1.1-1.6 cm) its midpoints lie 6.0e-4 cm inside on average, the arc's 1.4e-4 (the
