@@ -151,11 +151,11 @@ def _rank_warnings(params, fit, post) -> list[str]:
     if not fit or "shift_at_half_rank_s" not in fit or post is None:
         return []
     out = []
-    for label, is_E, shift, shift_s, sd in zip(params.labels, params.is_E, fit["shift_at_half_rank"].values(),
-                                                fit["shift_at_half_rank_s"], post.std_s):
+    for label, is_E, shift, shift_s, sd, noise_sd in zip(params.labels, params.is_E, fit["shift_at_half_rank"].values(),
+                                                          fit["shift_at_half_rank_s"], post.std_s, post.noise_part_s):
         if sd > 0 and abs(shift_s) > max(BIAS_MIN[0] if is_E else BIAS_MIN[1], RANK_SIGMAS * sd):
             moved = f"{100 * shift:+.0f} %" if is_E else f"{shift:+.3f}"
-            far = "at least " if abs(shift_s) >= (1 - 1e-6) * RANK_REACH * sd else ""
+            far = "at least " if abs(shift_s) >= (1 - 1e-6) * RANK_REACH * noise_sd else ""  # the search's edge
             out.append(f"{label} moves by {far}{moved} ({far}{abs(shift_s) / sd:.0f} sigma) when the bases are cut to half "
                        "their rank: it has not settled in the rank, and more bases may move it as far -- train with "
                        "more examples and a higher rank (--synthetic N --rank R), or bases from motion like this case's")

@@ -200,6 +200,11 @@ def test_bases_that_miss_wall_motion_say_how_far_it_moves_E(tmp_path):
     assert quiet == [], quiet
 
 
+def _spread(sd: float) -> SimpleNamespace:
+    """A posterior's stds as _rank_warnings reads them: one constant, all of it noise."""
+    return SimpleNamespace(std_s=np.array([sd]), noise_part_s=np.array([sd]))
+
+
 def test_the_half_rank_shift_is_where_an_estimate_at_half_the_rank_goes(tmp_path):
     """The answer on the surrogate with the bases cut to half their rank
     (report.half_rank_shift: dense algebra at the answer) is the answer of a whole
@@ -224,17 +229,20 @@ def test_the_half_rank_shift_is_where_an_estimate_at_half_the_rank_goes(tmp_path
     assert abs(np.log(half[0] / theta[0]) - shift[0]) < 0.05 * abs(shift[0])
 
     fit = {"shift_at_half_rank": {"inclusion.E": float(np.expm1(shift[0]))}, "shift_at_half_rank_s": [shift[0]]}
-    loud = _rank_warnings(estimator.params, fit, SimpleNamespace(std_s=np.array([abs(shift[0]) / (2 * RANK_SIGMAS)])))
-    quiet = _rank_warnings(estimator.params, fit, SimpleNamespace(std_s=np.array([abs(shift[0]) / 2])))
+    loud = _rank_warnings(estimator.params, fit, _spread(abs(shift[0]) / (2 * RANK_SIGMAS)))
+    quiet = _rank_warnings(estimator.params, fit, _spread(abs(shift[0]) / 2))
     assert len(loud) == 1 and "half their rank" in loud[0] and quiet == [], (loud, quiet)
 
     # beyond RANK_REACH stds the search stops at that edge, and the warning says "at least"
     sd = 0.75 * abs(shift[0]) / RANK_REACH  # the edge at 3/4 of the way: still above BIAS_MIN
     capped = half_rank_shift(estimator, theta, std_s=np.array([sd]))
     fit = {"shift_at_half_rank": {"inclusion.E": float(np.expm1(capped[0]))}, "shift_at_half_rank_s": [capped[0]]}
-    far = _rank_warnings(estimator.params, fit, SimpleNamespace(std_s=np.array([sd])))
+    far = _rank_warnings(estimator.params, fit, _spread(sd))
     assert np.isclose(capped[0], np.sign(shift[0]) * RANK_REACH * sd, rtol=1e-9), (capped, shift)
     assert len(far) == 1 and "at least" in far[0], far
+    # the edge is in the noise's stds (the search's), whatever the model's parts add to sigma
+    wider = _rank_warnings(estimator.params, fit, SimpleNamespace(std_s=np.array([1.3 * sd]), noise_part_s=np.array([sd])))
+    assert len(wider) == 1 and "at least" in wider[0], wider
 
     _, best, _ = estimator.final()  # a user who stopped the run gets the share explained, not two more searches
     assert "shift_at_half_rank" in fit_of_bases(estimator, theta, best)
