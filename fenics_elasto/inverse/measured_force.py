@@ -86,12 +86,12 @@ def predicted_force_covariances(problem, basis, theta, lin, noise_std: float,
     H = lin.A_q.T @ lin.A_q + lin.prior * np.eye(lin.A_q.shape[1])
     states = problem.states
     width = H.shape[0] // states.count  # each state's controls, stacked
+    rows = {group: force_rows(problem, theta, group) for group in {m.group for m in measured}}  # states share them
     out = {}
     for m in measured:
-        rows = force_rows(problem, theta, m.group)
         state = states.names.index(m.state) if m.state else 0
         J = np.zeros((problem.gdim, H.shape[0]))
-        J[:, state * width:(state + 1) * width] = rows if basis is None else rows @ basis
+        J[:, state * width:(state + 1) * width] = rows[m.group] if basis is None else rows[m.group] @ basis
         out[m.label] = noise_std**2 * J @ np.linalg.solve(H, J.T)
     return out
 

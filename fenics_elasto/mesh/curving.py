@@ -378,9 +378,10 @@ def _arc_sag(d: np.ndarray, na: np.ndarray, nb: np.ndarray) -> np.ndarray:
     """From the chord's middle to the middle of the circular arc over chord ``d`` = b - a
     whose ends meet the planes of their normals na, nb at the angles they make with the
     chord (their mean, phi): (|d| / 2) tan(phi / 2) along na + nb."""
-    length = np.linalg.norm(d, axis=1)
-    sine = lambda n, sign: np.clip(sign * np.einsum("ij,ij->i", d, n) / np.maximum(length, 1e-300), -1.0, 1.0)  # noqa: E731
-    phi = (np.arcsin(sine(na, -1.0)) + np.arcsin(sine(nb, 1.0))) / 2
+    length = np.maximum(np.linalg.norm(d, axis=1), 1e-300)
+    below_a = np.clip(-np.einsum("ij,ij->i", d, na) / length, -1.0, 1.0)  # sin of b's drop below a's plane
+    below_b = np.clip(np.einsum("ij,ij->i", d, nb) / length, -1.0, 1.0)  # ... and of a's below b's
+    phi = (np.arcsin(below_a) + np.arcsin(below_b)) / 2
     direction = na + nb
     direction /= np.maximum(np.linalg.norm(direction, axis=1, keepdims=True), 1e-300)
     return (length / 2 * np.tan(phi / 2))[:, None] * direction
