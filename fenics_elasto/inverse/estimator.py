@@ -51,6 +51,10 @@ from fenics_elasto.util.interrupts import Interrupted
 from fenics_elasto.util.logs import log
 
 
+SETTLE_SHARE = 0.05  # Estimator.settled_within: a step this share of the noise std moves no decision
+SETTLE_REACH = 10.0  # ... and never coarser than this many outer_xtol
+
+
 @dataclass
 class EstimateResult:
     """What an estimate found: the materials, the field, the forces, and result.json's record."""
@@ -155,6 +159,19 @@ class Estimator:
         tenth of it in nu."""
         return self.options.outer_xtol * np.where(self.params.is_E, 1.0, 0.1)
 
+    def settled_within(self, xtol: np.ndarray) -> np.ndarray:
+        """How near a solved value the surrogate's optimum must land to end the outer loop:
+        ``xtol``, or SETTLE_SHARE of the best solve's noise std where that is wider (at
+        most SETTLE_REACH x xtol: an undetermined constant's std would end the loop
+        before its first step). Where the data determine a constant loosely its Phi* is
+        flat, and the optimum creeps by steps of the inner fits' own accuracy: each round
+        moved the answer by a fiftieth of its sigma for a whole round of inner fits (the
+        pelvis phantom's two states: 55.39 -> 55.32 -> 55.26, sigma 3.3)."""
+        post = self.uncertainty.posterior(self.profile.best())
+        if post is None:
+            return xtol
+        return np.clip(SETTLE_SHARE * post.noise_part_s, xtol, SETTLE_REACH * xtol)
+
     def run(self) -> None:
         """Scan, check the data determine the materials, minimise Phi*, polish."""
         n = self.options.scan if len(self.params) == 1 else max(2, min(self.options.scan, 3))
@@ -176,7 +193,8 @@ class Estimator:
             start, scanned, known = surrogate_scan(self.surrogate, points)
             self._check_identifiable([self.profile.best().value] + scanned)
             self.outer_iterations = minimize_on_surrogate(self.profile, self.surrogate, xtol, self.options.outer_maxiter,
-                                                          start, known, smooth=not self.problem.misfit.rough())
+                                                          start, known, smooth=not self.problem.misfit.rough(),
+                                                          settled_within=self.settled_within)
         self.polish()
 
     def _check_identifiable(self, scanned: list[float]) -> None:

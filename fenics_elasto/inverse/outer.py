@@ -135,10 +135,11 @@ def surrogate_scan(surrogate: SurrogateProfile, points) -> tuple[np.ndarray, lis
 
 
 def minimize_on_surrogate(profile: Profile, surrogate: SurrogateProfile, xtol: np.ndarray, maxiter: int,
-                          start=None, scanned=(), smooth: bool = True) -> int:
+                          start=None, scanned=(), smooth: bool = True, settled_within=None) -> int:
     """Optimise s on the surrogate (from ``start``, then from the best full solve), solve
     its optimum in full (a new snapshot), repeat until the optimum lands where a full
-    solve already is. One constant on a ``smooth`` Phi*: cubic steps inside a bracket
+    solve already is: within ``xtol``, or within ``settled_within(xtol)`` (per constant,
+    in s) where given. One constant on a ``smooth`` Phi*: cubic steps inside a bracket
     (first the ``scanned`` points', (s, Phi*, dPhi*/ds) each, then one made around the
     best full solve), as the full-space loop; else bounded L-BFGS-B. Returns the rounds."""
     params = profile.params
@@ -150,7 +151,8 @@ def minimize_on_surrogate(profile: Profile, surrogate: SurrogateProfile, xtol: n
         theta = params.to_theta(x)
         log.info(f"  surrogate optimum {params.describe(theta)}  (equation residual "
                  f"{profile.surrogate.residual(theta):.1e}, {evaluations} evaluations)")
-        if any(np.all(np.abs(x - s) < xtol) for s, _, _ in profile.solved):
+        within = xtol if settled_within is None else settled_within(xtol)
+        if any(np.all(np.abs(x - s) < within) for s, _, _ in profile.solved):
             return rounds
         profile.solve(theta, "outer")
     return maxiter
