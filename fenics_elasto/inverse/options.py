@@ -10,7 +10,8 @@ class Options:
     inner: str = "auto"
     inner_maxiter: int = 400
     outer_maxiter: int = 40
-    outer_xtol: float = 1e-3  # the outer loop stops once a step moves log E by less (nu: a tenth of it)
+    outer_xtol: float = 1e-3  # the outer loop stops once a step moves log E by less (nu: a tenth of it);
+    # on the surrogate also within a share of the noise std (Estimator.settled_within)
     scan: int = 5  # material values per estimated constant in the initial scan (1: the initial values only)
     inner_tol: float = 1e-6  # relative decrease of Phi that ends an L-BFGS inner loop (Gauss-Newton: its square)
     full_gn_limit: int = 1500  # largest full force space for which "auto" picks Gauss-Newton
