@@ -38,7 +38,7 @@ from fenics_elasto.inverse.objective import Evaluation, InverseProblem
 from fenics_elasto.inverse.options import Options
 from fenics_elasto.inverse.outer import minimize_on_surrogate, minimize_profile, scan_grid, surrogate_scan
 from fenics_elasto.inverse.profile import Profile, SurrogateProfile
-from fenics_elasto.inverse.reduction.bases import reach_warning
+from fenics_elasto.inverse.reduction.bases import reach_warning, with_matched_motion
 from fenics_elasto.inverse.report import describe_offset, describe_uncertainty, fit_of_bases, run_warnings
 from fenics_elasto.inverse.report import record as result_record
 from fenics_elasto.inverse.surrogate import MaterialSurrogate
@@ -127,9 +127,14 @@ class Estimator:
         self.problem = problem
         self.params = problem.params
         self.options = options
-        self.basis = basis  # W (force_dofs x r) or None: the full space
-        self.inner_name = choose_inner(problem, options, basis)
         self.d0 = surface_matched_start(problem)
+        self.trained_basis = basis  # as trained (bases_fit's share, result.json's rank)
+        if basis is not None and options.matched_motion:
+            basis = with_matched_motion(basis, problem.states.split(self.d0))
+            log.info(f"bases: rank {self.trained_basis.shape[1]} and {basis.shape[1] - self.trained_basis.shape[1]} "
+                     "surface-matched wall motion(s)")
+        self.basis = basis  # W (force_dofs x r), with the matched wall motions, or None: the full space
+        self.inner_name = choose_inner(problem, options, basis)
         surrogate = MaterialSurrogate(problem, basis) if basis is not None and options.surrogate else None
         self.profile = Profile(problem, self._inner(), basis, surrogate, same_within=1e-3 * options.outer_xtol)
         self.surrogate = SurrogateProfile(self.profile) if surrogate is not None else None

@@ -54,7 +54,7 @@ def fit_of_bases(estimator: Estimator, theta, best: InnerResult, post: Posterior
     (reduction.missing_wall_motion) and when they are cut to half their rank
     (half_rank_shift); relative for E, absolute for nu. After an ``interrupted`` run
     the share only: the two moves cost fits a user who stopped the run is not waiting for."""
-    fit = bases_fit(estimator.basis, np.stack(estimator.problem.states.split(estimator.d0), axis=1))
+    fit = bases_fit(estimator.trained_basis, np.stack(estimator.problem.states.split(estimator.d0), axis=1))
     lin = estimator.profile.linearisation(best)
     if fit is None or lin is None or interrupted:
         return fit
@@ -85,13 +85,14 @@ def half_rank_shift(estimator: Estimator, theta, std_s=None) -> np.ndarray | Non
     ``std_s`` where given, which it is compared with (RANK_SIGMAS of them), its bracket
     made in steps of that std (that case: 52 s, then 23 s, then 15.5 s) and kept within
     RANK_REACH of them: a move that far is reported at that edge, a lower bound (the
-    fits far from the answer are the costly ones). None without a surrogate or below
-    rank 4."""
-    rank = None if estimator.basis is None else estimator.basis.shape[1]
-    if estimator.surrogate is None or rank is None or rank < 4:
+    fits far from the answer are the costly ones). The matched wall motions
+    (with_matched_motion) stay: they are the data's, not the training's. None without a
+    surrogate or below rank 4."""
+    trained, basis = estimator.trained_basis, estimator.basis
+    if estimator.surrogate is None or trained is None or basis is None or trained.shape[1] < 4:
         return None
     start, params = time.perf_counter(), estimator.params
-    fewer = FewerModes(estimator.profile, rank // 2)
+    fewer = FewerModes(estimator.profile, basis.shape[1] - trained.shape[1] + trained.shape[1] // 2)
     s = params.to_s(theta)
     xtol, step, bounds = estimator.xtol, BRACKET_STEP, params.s_bounds()
     if std_s is not None:  # surrogate_minimum stops at a tenth of xtol; a bracket made in sigmas
@@ -102,7 +103,7 @@ def half_rank_shift(estimator: Estimator, theta, std_s=None) -> np.ndarray | Non
                   for (low, high), x, sd in zip(bounds, s, std_s)]
     x, evaluations = surrogate_minimum(fewer, s, xtol, smooth=not estimator.problem.misfit.rough(), step=step,
                                        bounds=bounds)
-    log.info(f"the bases cut to rank {rank // 2}: {params.describe(params.to_theta(x))} on the surrogate "
+    log.info(f"the bases cut to rank {trained.shape[1] // 2}: {params.describe(params.to_theta(x))} on the surrogate "
              f"({evaluations} evaluations, {time.perf_counter() - start:.1f} s)")
     return np.asarray(x, float) - s
 
@@ -187,7 +188,7 @@ def record(estimator: Estimator, theta, best: InnerResult, phi_undeformed, warni
         "solves": {"forward": problem.forward.forward_solves, "adjoint": problem.forward.adjoint_solves},
         "dofs": problem.model.dofs.num_dofs,
         "force_dofs": problem.force_dofs,
-        "rank": None if estimator.basis is None else int(estimator.basis.shape[1]),
+        "rank": None if estimator.trained_basis is None else int(estimator.trained_basis.shape[1]),
         "inner_solver": estimator.inner_name,
         "match_nodes": "vertices" if problem.observation.vertices_only else "all",
         "degree": problem.scene.degree,

@@ -11,7 +11,7 @@ from fenics_elasto.util.errors import UserError
 from fenics_elasto.inverse.estimator import estimate
 from fenics_elasto.mesh.builtin import build_scene
 from fenics_elasto.inverse.objective import InverseProblem
-from fenics_elasto.inverse.reduction.bases import Bases, load_bases, pca, train_bases
+from fenics_elasto.inverse.reduction.bases import Bases, load_bases, pca, train_bases, with_matched_motion
 from fenics_elasto.model.scene import load_scene
 from targets import fine_simulation, inclusion_ratio_4_target, letter_case
 from targets import taylor_rates
@@ -26,6 +26,22 @@ def test_pca_recovers_a_known_low_rank_set():
     assert abs(variance[:3].sum() - 1.0) < 1e-12 and variance[3] < 1e-20
     assert np.all(np.diff(variance) <= 0)
     assert np.allclose(W.T @ W, np.eye(4), atol=1e-12)
+
+
+def test_matched_wall_motions_lead_the_bases_orthonormal_and_spanned():
+    """Each state's matched motion becomes a leading column (the half-rank cut keeps it),
+    the whole orthonormal; the bases span it afterwards; a motion they already span, or
+    one the first state's column spans, adds nothing."""
+    rng = np.random.default_rng(2)
+    W = np.linalg.qr(rng.standard_normal((300, 12)))[0]
+    filled, emptied = rng.standard_normal(300), rng.standard_normal(300)
+    out = with_matched_motion(W, [filled, emptied])
+    assert out.shape == (300, 14) and np.array_equal(out[:, 2:], W)
+    assert np.allclose(out.T @ out, np.eye(14), atol=1e-12)
+    for d in (filled, emptied):
+        assert np.linalg.norm(d - out @ (out.T @ d)) < 1e-12 * np.linalg.norm(d)
+    assert with_matched_motion(W, [W @ rng.standard_normal(12)]) is W
+    assert with_matched_motion(W, [filled, 3.0 * filled + W[:, 0]]).shape == (300, 13)
 
 
 @pytest.fixture(scope="module")
