@@ -157,7 +157,7 @@ def test_inner_spread_is_nil_on_a_clean_target_and_not_on_a_rough_one(tmp_path):
     rng = np.random.default_rng(1)
     W = np.linalg.qr(np.c_[problem.forward.on_loaded(estimate(problem).u),
                            rng.standard_normal((problem.force_dofs, 5))])[0]
-    alone = "optimizer.matched_motion=false"  # W spans the answer: the starts' spread is scaled to its modes
+    alone = "optimizer.matched_motion='off'"  # W spans the answer: the starts' spread is scaled to its modes
     rough = noisy_copy(target, tmp_path / "rough.vtp", 0.3 * read_surface(target, 2).mean_edge, np.random.default_rng(3))
     spreads = []
     for surface in (target, rough):
@@ -241,7 +241,7 @@ def test_one_factorization_gives_the_answer_of_two(tmp_path, monkeypatch):
     and factorize: the budget is lifted here.)"""
     source, target = letter_case(tmp_path, 0.25, 0.35)
     # W spans the answer; without the matched motion Phi* keeps digits above the refinement's tolerance
-    problem = InverseProblem(load_scene(source, [f"target.surface='{target}'", "optimizer.matched_motion=false"]))
+    problem = InverseProblem(load_scene(source, [f"target.surface='{target}'", "optimizer.matched_motion='off'"]))
     rng = np.random.default_rng(1)
     W = np.linalg.qr(np.c_[problem.forward.on_loaded(estimate(problem).u), rng.standard_normal((problem.force_dofs, 5))])[0]
     monkeypatch.setattr(profile_module, "refine", lambda *args, budget=None, **kwargs: refine(*args, **kwargs))

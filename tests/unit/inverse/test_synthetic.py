@@ -180,7 +180,7 @@ def test_bases_that_miss_wall_motion_say_how_far_it_moves_E(tmp_path):
     scene = load_scene(source, [target])
     W, _ = np.linalg.qr(affine_basis(InverseProblem(scene)))
 
-    def run(W, matched_motion=False):
+    def run(W, matched_motion="off"):
         problem = InverseProblem(scene)
         estimator = Estimator(problem, replace(Options.from_scene(scene), matched_motion=matched_motion), W)
         estimator.run()
@@ -193,7 +193,7 @@ def test_bases_that_miss_wall_motion_say_how_far_it_moves_E(tmp_path):
     ratio, missing, warned = run(W)
     predicted = ratio * np.exp(missing["shift_s"][0])
     enriched, again, quiet = run(np.linalg.qr(np.hstack([W, missing["direction"][:, None]]))[0])
-    matched, _, _ = run(W, matched_motion=True)  # the default: the data's own wall motion joins the bases
+    matched, _, _ = run(W, matched_motion="auto")  # the default: the data's own wall motion joins the bases
     print(f"affine bases: {ratio:.4f}, predicted {predicted:.4f}, enriched {enriched:.4f}, with the matched motion "
           f"{matched:.4f}; missing rms {missing['missing_wall_rms']:.3g} -> {again['missing_wall_rms']:.3g}")
     assert abs(ratio - 4.0) / 4.0 > 0.02  # biased by the bases (measured -3.7 %)
@@ -219,7 +219,7 @@ def test_the_half_rank_shift_is_where_an_estimate_at_half_the_rank_goes(tmp_path
     W = train_bases(InverseProblem(scene), [], rank=12, generator=Generator(16, seed=1)).W
 
     def answer(W):  # the trained modes alone: the data's matched motion would hold what they miss
-        estimator = Estimator(InverseProblem(scene), replace(Options.from_scene(scene), matched_motion=False), W)
+        estimator = Estimator(InverseProblem(scene), replace(Options.from_scene(scene), matched_motion="off"), W)
         estimator.run()
         theta, best, _ = estimator.final()
         return estimator, theta
