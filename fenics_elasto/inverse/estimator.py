@@ -8,7 +8,8 @@ the boundary controls from iterative surface matching (matching.py), the materia
 from a scan over their bounds. With reduced bases (and ``surrogate``, the default) the
 outer loop runs on the reduced-basis response in the materials and solves only its
 optimum in full, until the optimum lands where a full solve already is. The result is
-always the best full solve.
+always the best full solve. Each state's surface-matched wall motion joins the bases
+(``joins_matched_motion``): the motion the data show, whatever the training spanned.
 
 Before any solve the set-up is checked: a target that does not overlap the matched
 surface, every E estimated (only ratios are identifiable), and a full force space that
