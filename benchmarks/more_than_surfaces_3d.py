@@ -14,7 +14,9 @@ adds one kind of data:
 - a displacement field: 20,000 vertices of the truth's mesh with their displacement and
   a smooth 1 % error, noise stated.
 
-    .venv/bin/python benchmarks/more_than_surfaces_3d.py [--out DIR]
+    .venv/bin/python benchmarks/more_than_surfaces_3d.py [--out DIR] [--set KEY=VALUE ...]
+
+``--set``: added to every row's estimate (e.g. optimizer.matched_motion='auto').
 """
 
 from __future__ import annotations
@@ -66,7 +68,7 @@ def rows(filled: dict, emptied: dict, out: Path) -> dict[str, list[str]]:
     }
 
 
-def run(out: Path) -> None:
+def run(out: Path, extra: list[str]) -> None:
     out.mkdir(parents=True, exist_ok=True)
     problem = ind.plain_source(out / "sources", 2)
     bases = problem.parent / "bases.npz"
@@ -78,7 +80,7 @@ def run(out: Path) -> None:
     for name, sets in rows(filled, emptied, out).items():
         folder = out / name.replace(" ", "_").replace("+", "plus").replace("(", "").replace(")", "").replace("%", "pc")
         args = ["estimate", str(problem), "--out", str(folder), "--set", f"reduction={{bases='{bases}'}}"]
-        for s in sets:
+        for s in sets + extra:
             args += ["--set", s]
         start = time.perf_counter()
         assert main(args) == 0
@@ -100,4 +102,6 @@ def run(out: Path) -> None:
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=Path("out/more_than_surfaces_3d"))
-    run(parser.parse_args().out)
+    parser.add_argument("--set", action="append", default=[], help="extra --set for every estimate")
+    options = parser.parse_args()
+    run(options.out, options.set)

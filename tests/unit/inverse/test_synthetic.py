@@ -193,7 +193,7 @@ def test_bases_that_miss_wall_motion_say_how_far_it_moves_E(tmp_path):
     ratio, missing, warned = run(W)
     predicted = ratio * np.exp(missing["shift_s"][0])
     enriched, again, quiet = run(np.linalg.qr(np.hstack([W, missing["direction"][:, None]]))[0])
-    matched, _, _ = run(W, matched_motion="auto")  # the default: the data's own wall motion joins the bases
+    matched, _, _ = run(W, matched_motion="auto")  # the data's own wall motion joins the bases
     print(f"affine bases: {ratio:.4f}, predicted {predicted:.4f}, enriched {enriched:.4f}, with the matched motion "
           f"{matched:.4f}; missing rms {missing['missing_wall_rms']:.3g} -> {again['missing_wall_rms']:.3g}")
     assert abs(ratio - 4.0) / 4.0 > 0.02  # biased by the bases (measured -3.7 %)
