@@ -228,9 +228,9 @@ def with_matched_motion(W: np.ndarray, motions: list[np.ndarray]) -> np.ndarray:
     its interval then holding it; the two states 55.3 -> 49.5.)"""
     extra: list[np.ndarray] = []
     for d in motions:
-        size = float(np.linalg.norm(d))
+        size, spanned = float(np.linalg.norm(d)), np.column_stack(extra + [W])
         for _ in range(2):  # twice: one pass of Gram-Schmidt loses orthogonality to round-off
-            d = d - W @ (W.T @ d) - sum((e * float(e @ d) for e in extra), np.zeros_like(d))
+            d = d - spanned @ (spanned.T @ d)
         if float(np.linalg.norm(d)) > 1e-6 * size:
             extra.append(d / float(np.linalg.norm(d)))
     return np.column_stack(extra + [W]) if extra else W
