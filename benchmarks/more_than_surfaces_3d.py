@@ -68,7 +68,7 @@ def rows(filled: dict, emptied: dict, out: Path) -> dict[str, list[str]]:
     }
 
 
-def run(out: Path, extra: list[str]) -> None:
+def run(out: Path, extra: list[str], only: list[str]) -> None:
     out.mkdir(parents=True, exist_ok=True)
     problem = ind.plain_source(out / "sources", 2)
     bases = problem.parent / "bases.npz"
@@ -78,6 +78,8 @@ def run(out: Path, extra: list[str]) -> None:
     emptied = ind.phantom(out / "truth", TRUTH, state="emptied")
     table, base = [], None
     for name, sets in rows(filled, emptied, out).items():
+        if only and name not in only:
+            continue
         folder = out / name.replace(" ", "_").replace("+", "plus").replace("(", "").replace(")", "").replace("%", "pc")
         args = ["estimate", str(problem), "--out", str(folder), "--set", f"reduction={{bases='{bases}'}}"]
         for s in sets + extra:
@@ -103,5 +105,6 @@ if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=Path("out/more_than_surfaces_3d"))
     parser.add_argument("--set", action="append", default=[], help="extra --set for every estimate")
+    parser.add_argument("--row", action="append", default=[], help="run only this row (by its name; repeatable)")
     options = parser.parse_args()
-    run(options.out, options.set)
+    run(options.out, options.set, options.row)

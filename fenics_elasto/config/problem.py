@@ -130,7 +130,7 @@ OPTIMIZER = Table({
     "full_gn_limit": Key(Integer(ge=0), 1500),
     "anchor": Key(Number(ge=0), 1e-4),
     "surrogate": Key(Boolean(), True),
-    "matched_motion": Key(Choice("auto", "on", "off"), "off"),
+    "matched_motion": Key(Choice("auto", "on", "off"), "auto"),
     "allow_undetermined": Key(Boolean(), False),
 })
 

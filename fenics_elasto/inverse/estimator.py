@@ -8,8 +8,9 @@ the boundary controls from iterative surface matching (matching.py), the materia
 from a scan over their bounds. With reduced bases (and ``surrogate``, the default) the
 outer loop runs on the reduced-basis response in the materials and solves only its
 optimum in full, until the optimum lands where a full solve already is. The result is
-always the best full solve. Each state's surface-matched wall motion can join the bases
-(``joins_matched_motion``): the motion the data show, whatever the training spanned.
+always the best full solve. Each state's surface-matched wall motion, smoothed, joins the
+bases by default (``joins_matched_motion``): the motion the data show, whatever the
+training spanned.
 
 Before any solve the set-up is checked: a target that does not overlap the matched
 surface, every E estimated (only ratios are identifiable), and a full force space that
@@ -27,7 +28,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
-from fenics_elasto.geometry.matching import match_surface
+from fenics_elasto.geometry.matching import joined_motion, match_surface
 from fenics_elasto.geometry.targets import SurfaceTerm
 from fenics_elasto.inverse.checks import check_determined, check_extent, check_overlap, target_warnings
 from fenics_elasto.inverse.inner import LBFGS, GaussNewton, InnerResult
@@ -100,37 +101,56 @@ def choose_inner(problem: InverseProblem, options: Options, basis) -> str:
 
 def joins_matched_motion(problem: InverseProblem, options: Options) -> bool:
     """Whether the states' surface-matched wall motions join the bases (with_matched_motion):
-    "on", or "auto" without a measured force. "off" is the default: on noisy targets the
-    matched motion carries their noise and the mesh part of sigma blew up (the real
-    prostate at 0.5 mm noise: 189 for an E of 27.9). A force reads the wall's whole
+    "on", or "auto" (the default) without a measured force. A force reads the wall's whole
     motion, and the matched motion's tangential part (none: closest points) is what the
     prior then holds -- the pelvis phantom's rectum force put E -8.7 % off with it
-    (interval missing), +1.2 % without."""
+    (interval missing), +1.2 % without. (Joined unsmoothed, the motion carried a noisy
+    target's noise: see smooth_matched_motions.)"""
     if options.matched_motion == "auto":
         return not measured_forces(problem.scene)
     return options.matched_motion == "on"
 
 
-def surface_matched_start(problem: InverseProblem) -> np.ndarray:
+def surface_matched_start(problem: InverseProblem, motions: list[np.ndarray] | None = None) -> np.ndarray:
     """Every state's loaded nodes' displacement that surface matching finds (flat, one
-    state after another): matched nodes moved onto their target surfaces (no surfaces:
-    each takes its nearest landmark's or field sample's displacement); loaded nodes that
-    are not matched stay put."""
-    return np.concatenate([_matched_start(problem, misfit) for misfit in problem.states.misfits])
+    state after another), from ``matched_node_motions`` (computed here if not given);
+    loaded nodes that are not matched stay put."""
+    motions = matched_node_motions(problem) if motions is None else motions
+    return np.concatenate([problem.forward.on_loaded(problem.observation.node_field(u)) for u in motions])
 
 
-def _matched_start(problem: InverseProblem, misfit) -> np.ndarray:
+def matched_node_motions(problem: InverseProblem) -> list[np.ndarray]:
+    """Each state's matched nodes' displacement (n, gdim): moved onto their target surfaces
+    (no surfaces: each takes its nearest landmark's or field sample's displacement)."""
+    return [_matched_nodes(problem, misfit) for misfit in problem.states.misfits]
+
+
+def _matched_nodes(problem: InverseProblem, misfit) -> np.ndarray:
     term = misfit.terms[0]
     nodes = problem.matched_coords
     if isinstance(term, SurfaceTerm):
-        u = match_surface(nodes, problem.node_groups(), term)
-    else:
-        rows = misfit.landmark_rows()
-        rows = rows[misfit.weights[rows] > 0]  # this state's own points
-        targets = np.concatenate([t.points for t in misfit.terms if isinstance(t, PointTerm)])
-        moved = targets - problem.observation.points[rows]
-        u = moved[cKDTree(problem.observation.points[rows]).query(nodes)[1]]
-    return problem.forward.on_loaded(problem.observation.node_field(u))
+        return match_surface(nodes, problem.node_groups(), term)
+    rows = misfit.landmark_rows()
+    rows = rows[misfit.weights[rows] > 0]  # this state's own points
+    targets = np.concatenate([t.points for t in misfit.terms if isinstance(t, PointTerm)])
+    moved = targets - problem.observation.points[rows]
+    return moved[cKDTree(problem.observation.points[rows]).query(nodes)[1]]
+
+
+def smooth_matched_motions(problem: InverseProblem, motions: list[np.ndarray]) -> list[np.ndarray]:
+    """The loaded nodes' matched motions that join the bases, one per state: smoothed
+    (geometry.matching.joined_motion) where a state has target surfaces, so that the
+    target's noise does not become wall motion the model must carry (unsmoothed, the
+    mesh part of sigma blew up on noisy targets: 189 for an E of 28 on the real prostate
+    at 0.5 mm of noise; smoothed, 0.8 beside a noise part of 1.3)."""
+    smooth = []
+    for misfit, u in zip(problem.states.misfits, motions):
+        term = misfit.terms[0]
+        if isinstance(term, SurfaceTerm):
+            edge = float(np.mean([surface.mean_edge for surface in term.surfaces]))
+            u = joined_motion(problem.matched_coords, problem.node_groups(), u, term.roughness(), edge)
+        smooth.append(problem.forward.on_loaded(problem.observation.node_field(u)))
+    return smooth
 
 
 class Estimator:
@@ -141,10 +161,11 @@ class Estimator:
         self.problem = problem
         self.params = problem.params
         self.options = options
-        self.d0 = surface_matched_start(problem)
+        motions = matched_node_motions(problem)
+        self.d0 = surface_matched_start(problem, motions)
         self.trained_basis = basis  # as trained (bases_fit's share, result.json's rank)
         if basis is not None and joins_matched_motion(problem, options):
-            basis = with_matched_motion(basis, problem.states.split(self.d0))
+            basis = with_matched_motion(basis, smooth_matched_motions(problem, motions))
             log.info(f"bases: rank {self.trained_basis.shape[1]} and {basis.shape[1] - self.trained_basis.shape[1]} "
                      "surface-matched wall motion(s)")
         self.basis = basis  # W (force_dofs x r), with the matched wall motions, or None: the full space

@@ -17,7 +17,7 @@ class Options:
     full_gn_limit: int = 1500  # largest full force space for which "auto" picks Gauss-Newton
     anchor: float = 1e-4  # Gauss-Newton prior towards the surface-matched start, relative to the data curvature
     surrogate: bool = True  # reduced bases: outer loop on the reduced-basis response in the materials
-    matched_motion: str = "off"  # reduced bases: the states' matched wall motions join them (auto: no measured force)
+    matched_motion: str = "auto"  # reduced bases: the states' matched wall motions join them (auto: no measured force)
     allow_undetermined: bool = False  # run a set-up the data cannot determine (with a warning)
 
     @classmethod

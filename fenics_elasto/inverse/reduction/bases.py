@@ -220,7 +220,7 @@ DIAGNOSTIC_RTOL = 1e-4
 
 
 def with_matched_motion(W: np.ndarray, motions: list[np.ndarray]) -> np.ndarray:
-    """The bases with each state's surface-matched wall motion (estimator.surface_matched_start)
+    """The bases with each state's surface-matched wall motion (estimator.smooth_matched_motions)
     put before their columns, orthonormal: the wall motion the data show, one direction
     per state, whatever the training's examples spanned. First, so that the bases cut to
     half their rank keep them. A motion the columns already span adds nothing.
