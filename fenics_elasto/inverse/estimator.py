@@ -338,7 +338,8 @@ def _run(estimator: Estimator, warnings: list[str], extent_warnings: list[str], 
     if smoothing is not None:
         record["uncertainty"]["target_smoothed"] = smoothing
     if post is not None:
-        for line in describe_uncertainty(post, theta) + largest_part(post) + describe_offset(post):
+        joined = estimator.basis is not estimator.trained_basis  # the data's wall motion joined the bases
+        for line in describe_uncertainty(post, theta) + largest_part(post, joined) + describe_offset(post):
             log.info(line)
     state_forces = {}
     if problem.states.count > 1:  # each state's distances and forces; ``forces`` and ``u`` are the first's
