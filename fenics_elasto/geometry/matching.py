@@ -59,7 +59,7 @@ def match_surface(points, groups, target, iterations: int = 60, k_data: float = 
 # (E ratio 3, rank 80) with the matched motion among the bases: the noise left on a
 # smoothed noisy target (0.15 / 0.30 mm for 0.5 / 1 mm of noise) made the source's own
 # error -- the mesh part of sigma, a degree-3 solve held at the walls -- 189 and 63 for an
-# E of 28 unsmoothed, 0.6 and 0.2 at 16x that noise (2.4 / 4.8 mm, 1.5-3 node spacings);
+# E of 28 unsmoothed, 0.8 and 0.3 at 16x that noise (2.4 / 4.8 mm, 1.5-3 node spacings);
 # a 1 mm voxel target's staircase (noise 0.03 mm, edges 1 mm) 13.9, 6.7 at 1.5 edges.
 # No floor in the source's node spacings: on clean targets E rests on micrometre motions
 # of the walls, and 1.5 spacings of smoothing put the clean pelvis phantom's E -5 % off
