@@ -37,9 +37,13 @@ def affine_alignment(points, groups, target, iterations: int = 40) -> np.ndarray
         for g in np.unique(groups):
             rows = groups == g
             if rows.sum() > points.shape[1] + 1:
-                M = np.linalg.lstsq(homogeneous[rows], goal[rows], rcond=None)[0]
-                x[rows] = homogeneous[rows] @ M
+                x[rows] = _affine_part(homogeneous[rows], goal[rows])
     return x - points
+
+
+def _affine_part(homogeneous: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """The least-squares affine map of the points (rows [x, 1]) to ``values``, applied to them."""
+    return homogeneous @ np.linalg.lstsq(homogeneous, values, rcond=None)[0]
 
 
 def match_surface(points, groups, target, iterations: int = 60, k_data: float = 0.5,
@@ -77,13 +81,14 @@ def joined_motion(points: np.ndarray, groups: np.ndarray, u: np.ndarray, noise: 
     went -0.3 % -> +4.9 %; the matched sliding is not all the springs'.)"""
     out = u.copy()
     length = max(SMOOTHING_PER_NOISE * noise, SMOOTHING_EDGES * edge)
+    if length <= 0:
+        return out
     homogeneous = np.c_[points, np.ones(len(points))]
     for g in np.unique(groups):
         rows = np.flatnonzero(groups == g)
-        if length <= 0 or len(rows) <= points.shape[1] + 1:
-            continue
-        affine = homogeneous[rows] @ np.linalg.lstsq(homogeneous[rows], u[rows], rcond=None)[0]
-        out[rows] = affine + _gaussian_average(cKDTree(points[rows]), u[rows] - affine, length)
+        if len(rows) > points.shape[1] + 1:
+            affine = _affine_part(homogeneous[rows], u[rows])
+            out[rows] = affine + _gaussian_average(cKDTree(points[rows]), u[rows] - affine, length)
     return out
 
 

@@ -164,11 +164,11 @@ class Estimator:
         motions = matched_node_motions(problem)
         self.d0 = surface_matched_start(problem, motions)
         self.trained_basis = basis  # as trained (bases_fit's share, result.json's rank)
-        if basis is not None and joins_matched_motion(problem, options):
-            basis = with_matched_motion(basis, smooth_matched_motions(problem, motions))
-            log.info(f"bases: rank {self.trained_basis.shape[1]} and {basis.shape[1] - self.trained_basis.shape[1]} "
-                     "surface-matched wall motion(s)")
         self.basis = basis  # W (force_dofs x r), with the matched wall motions, or None: the full space
+        if basis is not None and joins_matched_motion(problem, options):
+            self.basis = basis = with_matched_motion(basis, smooth_matched_motions(problem, motions))
+            log.info(f"bases: rank {self.trained_basis.shape[1]} and {self.matched_columns} "
+                     "surface-matched wall motion(s)")
         self.inner_name = choose_inner(problem, options, basis)
         surrogate = MaterialSurrogate(problem, basis) if basis is not None and options.surrogate else None
         self.profile = Profile(problem, self._inner(), basis, surrogate, same_within=1e-3 * options.outer_xtol)
@@ -176,6 +176,11 @@ class Estimator:
         self.uncertainty = AnswerUncertainty(problem, self.profile, self.surrogate, self.inner_name, options.anchor)
         self.outer_iterations = 0
         self._held = ExitStack()  # the contexts an estimate holds until ``close``
+
+    @property
+    def matched_columns(self) -> int:
+        """How many of the bases' columns are the data's matched wall motions (0 without)."""
+        return 0 if self.basis is None else self.basis.shape[1] - self.trained_basis.shape[1]
 
     def _inner(self):
         o = self.options
@@ -338,7 +343,7 @@ def _run(estimator: Estimator, warnings: list[str], extent_warnings: list[str], 
     if smoothing is not None:
         record["uncertainty"]["target_smoothed"] = smoothing
     if post is not None:
-        joined = estimator.basis is not estimator.trained_basis  # the data's wall motion joined the bases
+        joined = estimator.matched_columns > 0
         for line in describe_uncertainty(post, theta) + largest_part(post, joined) + describe_offset(post):
             log.info(line)
     state_forces = {}
