@@ -45,18 +45,17 @@ def _source(family, order: int):
     return ind.retarget(problem, {"surfaces": surfaces, "landmarks": truth["fiducials"]}), bases
 
 
-# order -> the bound on |E / truth - 1|: measured -3.92 % (order 1, curved on load; its
-# geometry is a reconstruction, ~1e-3 from the exact ellipsoid) and -0.16 % (order 2).
-BOUNDS = {1: 0.05, 2: 0.03}
+# |E / truth - 1| at most: measured -0.27 % (order 1, curved on load; -3.9 % before its
+# bones were read from their CAD faces) and +0.24 % (order 2); #31's goal is 3 %.
+BOUND = 0.03
 
 
 @pytest.mark.parametrize("order", [1, 2])
 def test_prostate_E_on_a_plain_gmsh_source(family, tmp_path, order):
     """(a) order 1: straight-sided, curved on load; (b) order 2: gmsh's own curved mesh.
-    Close to the truth, the interval holding it; (c) on the curved mesh the noise-free
-    target's error is no larger than the model's own part of sigma (mesh and bases)
-    says. On the straight-sided one the geometry's error is larger than that part; the
-    interval holds the truth through its noise part (widened: a structured residual)."""
+    Within 3 % of the truth, the interval holding it; (c) the noise-free target's error
+    is no larger than the model's own part of sigma (mesh and bases) says (measured:
+    0.13 against 1.44 on order 1, 0.12 against 1.54 on order 2)."""
     result = _estimate(*_source(family, order), tmp_path / "out")
     E = result["materials"]["prostate"]["E"]
     u = result["uncertainty"]["prostate.E"]
@@ -64,8 +63,7 @@ def test_prostate_E_on_a_plain_gmsh_source(family, tmp_path, order):
     parts = u["parts"]
     print(f"plain gmsh order {order}: E = {E:.3f} ({100 * (E / TRUE_E - 1):+.2f} %), [{low:.2f}, {high:.2f}], "
           f"parts {parts}, mesh shift {result['uncertainty'].get('mesh_shift')}")
-    assert abs(E / TRUE_E - 1) < BOUNDS[order], E
+    assert abs(E / TRUE_E - 1) < BOUND, E
     assert low < TRUE_E < high, (low, high)
     assert parts["mesh"] > 0 and "mesh_shift" in result["uncertainty"], result["uncertainty"]
-    if order == 2:
-        assert np.hypot(parts["mesh"], parts["bases"]) >= abs(E - TRUE_E), parts
+    assert np.hypot(parts["mesh"], parts["bases"]) >= abs(E - TRUE_E), parts

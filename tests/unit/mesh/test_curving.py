@@ -140,6 +140,76 @@ def test_coarse_surfaces_are_named():
         assert curving.curve_mesh(gmsh, 3).coarse == {}
 
 
+def _thin_tube(x):
+    return np.hypot(x[:, 1], x[:, 2]) - 0.5
+
+
+@pytest.mark.parametrize("faces_known, closer", [(True, 4.0), (False, None)])
+def test_a_coarse_tube_is_read_from_its_cad_face(monkeypatch, faces_known, closer):
+    """A tube of radius 0.5 meshed at 1.2 has three or four facets around: its edges
+    meet at up to 120 degrees, as a prism's do, but they lie on one CAD face (the
+    cylinder's side), so they are curvature: the side's midpoints land over 4x closer to
+    the cylinder than the chords (measured: 0.0058 against 0.0376 on average); the caps
+    stay flat. Read from the angles alone (faces unknown) they are not: 0.0255."""
+    if not faces_known:
+        monkeypatch.setattr(curving, "_cad_faces", lambda gmsh, tdim, facets: np.full(len(facets), -1))
+    with GmshModel("coarse tube") as gmsh:
+        occ = gmsh.model.occ
+        occ.cut([(3, occ.addBox(-2, -1.5, -1.5, 4, 3, 3))], [(3, occ.addCylinder(-1, 0, 0, 2, 0, 0, 0.5))])
+        occ.synchronize()
+        body = [t for _, t in gmsh.model.getEntities(3)]
+        gmsh.model.addPhysicalGroup(3, body, name="body")
+        faces = [t for _, t in gmsh.model.getBoundary([(3, t) for t in body], oriented=False)]
+        tube = [f for f in faces if max(map(abs, gmsh.model.getBoundingBox(2, f))) < 1.49]
+        gmsh.model.addPhysicalGroup(2, tube, name="tube")
+        gmsh.model.addPhysicalGroup(2, [f for f in faces if f not in tube], name="skin")
+        for option in ("Mesh.MeshSizeMin", "Mesh.MeshSizeMax"):
+            gmsh.option.setNumber(option, 1.2)
+        gmsh.model.mesh.generate(3)
+        before = curving.mesh_surfaces(gmsh, 3, node_positions(gmsh))
+        assert (before.face >= 0).all() == faces_known
+        edge_points = set()
+        for f in _surface_as_points(gmsh, before):
+            p = np.reshape(f, (3, 3))
+            edge_points |= {tuple(np.ravel(sorted((tuple(p[i]), tuple(p[j]))))) for i, j in ((0, 1), (1, 2), (2, 0))}
+        assert "tube" in curving.curve_mesh(gmsh, 3).coarse
+        curved, chord = _curved_and_chord(gmsh, _thin_tube, edge_points)
+        assert len(curved) > 200
+        if faces_known:
+            assert np.mean(curved) < np.mean(chord) / closer, (np.mean(curved), np.mean(chord))
+        else:
+            assert np.mean(curved) > np.mean(chord) / 2, (np.mean(curved), np.mean(chord))
+        position = node_positions(gmsh)
+        for x in (-1.0, 1.0):
+            cap = (np.abs(position[:, 0] - x) < 1e-3) & (_thin_tube(position) < 1e-9)
+            assert cap.sum() > 3 and np.abs(position[cap, 0] - x).max() < 1e-12
+
+
+def test_a_box_whose_faces_are_one_entity_keeps_its_edges():
+    """A mesh converted from elsewhere holds one entity per group: nothing tells a CAD
+    face, so the box's 90-degree edges stay features (read as curvature they would round
+    its corners) and, every surface flat, nothing is curved."""
+    with GmshModel("converted") as gmsh:
+        gmsh.model.occ.addBox(0, 0, 0, 2, 1, 1)
+        gmsh.model.occ.synchronize()
+        gmsh.option.setNumber("Mesh.MeshSizeMax", 0.3)
+        gmsh.model.mesh.generate(3)
+        tags, coords, _ = gmsh.model.mesh.getNodes()
+        _, tets = gmsh.model.mesh.getElementsByType(4)
+        _, triangles = gmsh.model.mesh.getElementsByType(2)
+        gmsh.model.add("one entity per group")
+        gmsh.model.addDiscreteEntity(2, 1)
+        gmsh.model.addDiscreteEntity(3, 1, [1])
+        gmsh.model.mesh.addNodes(3, 1, tags, coords)
+        gmsh.model.mesh.addElementsByType(1, 2, [], triangles)
+        gmsh.model.mesh.addElementsByType(1, 4, [], tets)
+        gmsh.model.addPhysicalGroup(2, [1], name="skin")
+        gmsh.model.addPhysicalGroup(3, [1], name="body")
+        position = node_positions(gmsh)
+        assert (curving.mesh_surfaces(gmsh, 3, position).face == -1).all()
+        assert curving.curve_mesh(gmsh, 3) is None
+
+
 @pytest.fixture(scope="module")
 def straight_scene(tmp_path_factory) -> Path:
     folder = tmp_path_factory.mktemp("straight")
