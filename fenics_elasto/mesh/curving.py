@@ -239,20 +239,20 @@ def mesh_surfaces(gmsh, tdim: int, position: np.ndarray) -> Surface:
 
 
 def _cad_faces(gmsh, tdim: int, facets: np.ndarray) -> np.ndarray:
-    """The gmsh entity each facet lies on, where the file's entities are CAD faces: more
-    of them than physical facet groups (gmsh writes a cylinder as its side and two caps,
-    a box as six faces). A face is smooth inside, so an edge between two facets of one
-    face is curvature whatever its angle: a bone bar meshed with four facets around is
-    a cylinder, not a prism. All -1 (the angles alone decide) where entities and groups
-    are one to one -- a mesh converted from elsewhere, whose one entity may hold a box's
-    edges."""
+    """The gmsh entity each facet lies on, where that entity is a CAD face: one bounded
+    by curves (gmsh writes a cylinder as its side and two caps, a box as six faces, and
+    keeps their bounding curves in the .msh; classifySurfaces' patches have them too). A
+    face is smooth inside, so an edge between two facets of one face is curvature
+    whatever its angle: a bone bar meshed with four facets around is a cylinder, not a
+    prism. -1 (the angles alone decide) on an entity with no bounding curves -- a closed
+    surface merged from an STL, or a mesh converted from elsewhere, whose one entity may
+    hold a box's edges."""
     out = np.full(len(facets), -1, np.int64)
     kind = CELLS[tdim - 1][0]
-    faces = [tag for _, tag in gmsh.model.getEntities(tdim - 1) if len(gmsh.model.mesh.getElementsByType(kind, tag)[0])]
-    if len(faces) <= len(gmsh.model.getPhysicalGroups(tdim - 1)):
-        return out
     index = {tuple(row): i for i, row in enumerate(np.sort(facets, axis=1).tolist())}
-    for tag in faces:
+    for _, tag in gmsh.model.getEntities(tdim - 1):
+        if not gmsh.model.getBoundary([(tdim - 1, tag)], oriented=False):
+            continue
         _, nodes = gmsh.model.mesh.getElementsByType(kind, tag)
         rows = [index.get(tuple(r)) for r in np.sort(np.asarray(nodes, np.int64).reshape(-1, tdim), axis=1).tolist()]
         out[[r for r in rows if r is not None]] = tag

@@ -186,9 +186,10 @@ def test_a_coarse_tube_is_read_from_its_cad_face(monkeypatch, faces_known, close
 
 
 def test_a_box_whose_faces_are_one_entity_keeps_its_edges():
-    """A mesh converted from elsewhere holds one entity per group: nothing tells a CAD
-    face, so the box's 90-degree edges stay features (read as curvature they would round
-    its corners) and, every surface flat, nothing is curved."""
+    """A mesh converted from elsewhere (or a closed STL merged) holds its surface as one
+    entity with no bounding curves: nothing tells a CAD face, so the box's 90-degree
+    edges stay features (read as curvature they would round its corners) and, every
+    surface flat, nothing is curved."""
     with GmshModel("converted") as gmsh:
         gmsh.model.occ.addBox(0, 0, 0, 2, 1, 1)
         gmsh.model.occ.synchronize()
