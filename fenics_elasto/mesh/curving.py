@@ -70,7 +70,7 @@ class Curving:
     largest_share: float  # ... relative to its edge
     straightened: int  # cells whose folding midpoints were put back on their chords
     coarse: dict  # facet group name -> mean angle (radians) between its neighbouring facets, where over COARSE_ANGLE
-    faces_known: bool  # the file kept its CAD faces (``_cad_faces``), which told curvature from features
+    coarse_on_faces: set  # ... those whose facets lie on CAD faces (``_cad_faces``), which told curvature from features
 
 
 @dataclass
@@ -99,7 +99,7 @@ def curve_if_straight(gmsh, tdim: int, path) -> tuple[str | None, list[str]]:
             f"{100 * done.largest_share:.0f} % of its edge{unfolded}); curve = \"off\" keeps it straight")
     log.info(note)
     return note, [f"{Path(path).name}: {name}: neighbouring facets meet at {np.degrees(angle):.0f} degrees on average, too "
-            f"coarse to tell its curvature well: {COARSE_READING[done.faces_known]}, and may be off by a part of its "
+            f"coarse to tell its curvature well: {COARSE_READING[name in done.coarse_on_faces]}, and may be off by a part of its "
             f"sag (up to {done.largest:.2g} here), which can move an estimated E by several % -- mesh it finer (2-3x "
             "more facets across it)" for name, angle in done.coarse.items()]
 
@@ -139,8 +139,9 @@ def curve_mesh(gmsh, tdim: int) -> Curving | None:
     straightened = _unfold(gmsh, tdim, nodes, targets - move)
     size = np.linalg.norm(move, axis=1)
     at = int(np.argmax(size))
-    return Curving(len(nodes), float(size[at]), float(size[at] / length[at]), straightened, coarse,
-                   bool((surface.face >= 0).any()))
+    on_faces = {name for name, (_, faces) in coarse.items() if faces}
+    return Curving(len(nodes), float(size[at]), float(size[at] / length[at]), straightened,
+                   {name: angle for name, (angle, _) in coarse.items()}, on_faces)
 
 
 UNFOLD_STEPS = (0.5, 0.25, 0.0)  # the share of its move a folding cell's surface midpoint keeps, tried in turn
@@ -369,10 +370,11 @@ def _bend(surface: Surface, edges: Edges, angles: np.ndarray, tdim: int) -> floa
 
 
 def _coarse_groups(gmsh, tdim: int, surface: Surface, edges: Edges, angles: np.ndarray) -> dict:
-    """Per facet group, the mean angle between its neighbouring facets (its sharp edges
-    aside), where over COARSE_ANGLE: too few facets to tell its curvature (a radius of
-    curvature under ~3 facet edges). A tube with six facets or fewer around meets at
-    SHARP_ANGLE or more, as a prism's sides do: it is taken for one."""
+    """Per facet group, (the mean angle between its neighbouring facets, its sharp edges
+    aside; whether they all lie on CAD faces), where that angle is over COARSE_ANGLE:
+    too few facets to tell its curvature (a radius of curvature under ~3 facet edges).
+    Off CAD faces, a tube with six facets or fewer around meets at SHARP_ANGLE or more,
+    as a prism's sides do: it is taken for one."""
     if tdim == 2:
         return {}
     key = np.sort(surface.facets, axis=1)
@@ -388,7 +390,8 @@ def _coarse_groups(gmsh, tdim: int, surface: Surface, edges: Edges, angles: np.n
         inside = mine[edges.facets[:, 0]] & (edges.facets[:, 1] >= 0) & mine[np.maximum(edges.facets[:, 1], 0)]
         bent = angles[inside & ((angles < SHARP_ANGLE) | edges.one_face)]
         if len(bent) and float(np.mean(bent)) > COARSE_ANGLE:
-            out[gmsh.model.getPhysicalName(dim, tag) or str(tag)] = float(np.mean(bent))
+            name = gmsh.model.getPhysicalName(dim, tag) or str(tag)
+            out[name] = (float(np.mean(bent)), bool((surface.face[mine] >= 0).all()))
     return out
 
 

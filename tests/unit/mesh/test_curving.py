@@ -172,7 +172,8 @@ def test_a_coarse_tube_is_read_from_its_cad_face(monkeypatch, faces_known, close
         for f in _surface_as_points(gmsh, before):
             p = np.reshape(f, (3, 3))
             edge_points |= {tuple(np.ravel(sorted((tuple(p[i]), tuple(p[j]))))) for i, j in ((0, 1), (1, 2), (2, 0))}
-        assert "tube" in curving.curve_mesh(gmsh, 3).coarse
+        done = curving.curve_mesh(gmsh, 3)
+        assert "tube" in done.coarse and ("tube" in done.coarse_on_faces) == faces_known  # the warning says which
         curved, chord = _curved_and_chord(gmsh, _thin_tube, edge_points)
         assert len(curved) > 200
         if faces_known:
