@@ -34,6 +34,40 @@ def test_auto_matches_vertices_on_straight_p2_and_every_node_on_curved(scenes, t
     assert not Observation(ElasticModel(every), every).vertices_only
 
 
+# A quadratic tetrahedron of the real prostate's source (its nodes in DOLFINx's order:
+# vertices, then the midpoints of edges 12, 02, 01, 03, 13, 23), on which DOLFINx's
+# Newton pulled the midpoint of edge 12 back to (13.1, -12.7, -7.2), another preimage of
+# the curved map far outside the cell.
+REAL_CELL = np.array([[-8.8494726406, 42.328841471, 36.6898862441], [-10.6008285527, 41.1355952965, 45.3781078421],
+                      [-9.2085536187, 43.1863104707, 42.2398365718], [-10.3624579348, 40.5351814004, 40.6036998533],
+                      [-9.8946701703, 41.9348662931, 41.3892686298], [-10.4816432438, 40.8353883485, 42.9909038477],
+                      [-10.0126340276, 42.2043293871, 43.7981280811], [-9.6870295172, 41.4802043811, 38.6347448123],
+                      [-9.0450008804, 42.767080751, 39.4624852125], [-9.8477559559, 41.8051076646, 41.0157747229]])
+
+
+def test_a_point_pulls_back_into_its_curved_cell_not_to_another_preimage():
+    """On that cell, a degree-3 field of the coordinates (exact there: the map is
+    quadratic) probed at the edge's midpoint and at two points inside the cell gives
+    the points back, with weights no larger than the basis has inside the cell -- not
+    the ~3e4 of the far preimage, which made one eps of the mesh part 719 for a field
+    whose degree-3 correction is at most 0.14."""
+    import basix.ufl
+    import ufl
+    from mpi4py import MPI
+    from dolfinx import fem, mesh as dmesh
+
+    domain = ufl.Mesh(basix.ufl.element("Lagrange", "tetrahedron", 2, shape=(3,)))
+    cell = dmesh.create_mesh(MPI.COMM_SELF, np.arange(10, dtype=np.int64)[None, :], domain, REAL_CELL)
+    V = fem.functionspace(cell, ("Lagrange", 3, (3,)))
+    coordinates = fem.Function(V)
+    coordinates.interpolate(lambda x: x)
+    inside = cell.geometry.cmaps[0].push_forward(np.array([[0.25, 0.25, 0.25], [0.1, 0.2, 0.3]]), REAL_CELL)
+    points = np.vstack([REAL_CELL[6], inside])
+    probe_ = PointProbe(V, points)
+    assert np.abs(probe_.weights).max() < 2.0, np.abs(probe_.weights).max()
+    assert np.allclose(probe_.values(coordinates.x.array), points, atol=1e-9)
+
+
 def test_landmarks_anywhere_interpolate_affine_fields_exactly(scenes):
     """On an isoparametric mesh the coordinates are in the space, so affine fields are:
     their interpolation at random interior points (not nodes), in curved cells too,
