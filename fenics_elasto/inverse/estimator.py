@@ -343,8 +343,7 @@ def _run(estimator: Estimator, warnings: list[str], extent_warnings: list[str], 
     if smoothing is not None:
         record["uncertainty"]["target_smoothed"] = smoothing
     if post is not None:
-        joined = estimator.matched_columns > 0
-        for line in describe_uncertainty(post, theta) + largest_part(post, joined) + describe_offset(post):
+        for line in describe_uncertainty(post, theta) + largest_part(post) + describe_offset(post):
             log.info(line)
     state_forces = {}
     if problem.states.count > 1:  # each state's distances and forces; ``forces`` and ``u`` are the first's

@@ -44,23 +44,13 @@ def mesh_error_wanted(scene) -> bool:
     return mode == "on" or (mode == "auto" and scene.gdim == 3)
 
 
-# Where the data's matched wall motion joined the bases (method §6), a rough one drives
-# the mesh part: on the real prostate's source (one element across the organs' gaps) it
-# made a clean target's mesh part 4.2 and 21.7 for E = 30 and 50 (0.17 for E = 30 without it).
-MATCHED_MOTION_LEVER = ("; or, where it is far above the answer's other parts, optimizer.matched_motion = 'off' "
-                        "(the data's wall motion in the bases can be rougher than the source resolves)")
-
-
-def largest_part(post: Posterior, matched_motion: bool = False) -> list[str]:
+def largest_part(post: Posterior) -> list[str]:
     """Per constant: ``largest part: mesh (the lever)`` where a part other than the noise
-    leads, else ``largest part: noise``. ``matched_motion``: whether the data's wall
-    motion joined the bases, which the mesh part's lever then names too."""
+    leads, else ``largest part: noise``."""
     out = []
     parts = post.parts_s()
     for i, label in enumerate(post.labels):
         name = max(parts, key=lambda key: parts[key][i])
         lever = "" if name == "noise" else f"; it shrinks with {LEVERS[name]}"
-        if name == "mesh" and matched_motion:
-            lever += MATCHED_MOTION_LEVER
         out.append(f"{label}: largest part of sigma: {name}{lever}")
     return out

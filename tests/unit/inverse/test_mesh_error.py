@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from fenics_elasto.inverse.uncertainty.mesh_error import higher_degree_solutions
-from fenics_elasto.inverse.uncertainty.parts import LEVERS, MATCHED_MOTION_LEVER, largest_part
+from fenics_elasto.inverse.uncertainty.parts import LEVERS, largest_part
 from fenics_elasto.mesh.builtin import build_scene
 from fenics_elasto.model.forward import BoundaryForward
 from fenics_elasto.model.observation import probe
@@ -77,10 +77,8 @@ def test_two_level_cycle_gives_amgs_solution_in_fewer_iterations(letter):
     assert 0 < iterations["two-level"] < iterations["amg"]
 
 
-def test_the_largest_part_names_its_lever_and_the_matched_motion_only_where_it_joined():
+def test_the_largest_part_names_its_lever():
     parts = {"noise": np.array([1.0, 1.0]), "mesh": np.array([4.0, 0.1]), "bases": np.array([0.2, 0.3])}
     post = SimpleNamespace(labels=["prostate.E", "tissue.nu"], parts_s=lambda: parts)
-    plain, joined = largest_part(post), largest_part(post, matched_motion=True)
-    assert plain == [f"prostate.E: largest part of sigma: mesh; it shrinks with {LEVERS['mesh']}",
-                     "tissue.nu: largest part of sigma: noise"]
-    assert joined == [plain[0] + MATCHED_MOTION_LEVER, plain[1]]
+    assert largest_part(post) == [f"prostate.E: largest part of sigma: mesh; it shrinks with {LEVERS['mesh']}",
+                                  "tissue.nu: largest part of sigma: noise"]
