@@ -60,12 +60,12 @@ def match_surface(points, groups, target, iterations: int = 60, k_data: float = 
 # The smoothing length of ``joined_motion``: SMOOTHING_PER_NOISE times the target's noise
 # (the noise a matched point sees, geometry.smoothing.noise), and at least SMOOTHING_EDGES
 # of its mean edge (shorter features are its sampling). Measured on the real prostate demo
-# (E ratio 3, rank 80) with the matched motion among the bases: the noise left on a
-# smoothed noisy target (0.15 / 0.30 mm for 0.5 / 1 mm of noise) made the source's own
-# error -- the mesh part of sigma, a degree-3 solve held at the walls -- 189 and 63 for an
-# E of 28 unsmoothed, 0.8 and 0.3 at 16x that noise (2.4 / 4.8 mm, 1.5-3 node spacings);
-# a 1 mm voxel target's staircase (noise 0.03 mm, edges 1 mm) 13.9, 6.7 at 1.5 edges.
-# No floor in the source's node spacings: on clean targets E rests on micrometre motions
+# (E ratio 3, rank 80) with the matched motion among the bases, unsmoothed against
+# smoothed so: 0.5 mm of noise -7.1 % against -4.2 %, 1 mm -10.8 % against -2.0 %, 1 mm
+# voxels -1.7 % against +0.45 % (16x the noise left on a smoothed noisy target, 0.15 /
+# 0.30 mm: 2.4 / 4.8 mm, 1.5-3 node spacings). (The mesh parts of sigma first quoted
+# here, 189 and 63 unsmoothed, were a probe's far preimage, model.observation; 0.15 and
+# 0.09 since.) No floor in the source's node spacings: on clean targets E rests on micrometre motions
 # of the walls, and 1.5 spacings of smoothing put the clean pelvis phantom's E -5 % off
 # (50.1 -> 47.5; its target's edges are a fifth of the source's).
 SMOOTHING_PER_NOISE = 16.0
