@@ -109,7 +109,10 @@ def _newton(cmap, point: np.ndarray, nodes: np.ndarray, start: np.ndarray, steps
         step = 1e-7
         jacobian = np.column_stack([(cmap.push_forward((reference + step * e)[None, :], nodes)[0] - x) / step
                                     for e in np.eye(len(reference))])
-        reference = reference - np.linalg.solve(jacobian, residual)
+        try:
+            reference = reference - np.linalg.solve(jacobian, residual)
+        except np.linalg.LinAlgError:  # a degenerate map where Newton wandered: keep the last
+            break
     return reference
 
 
