@@ -69,8 +69,17 @@ class Curving:
     largest: float  # the largest move
     largest_share: float  # ... relative to its edge
     straightened: int  # cells whose folding midpoints were put back on their chords
-    coarse: dict  # facet group name -> mean angle (radians) between its neighbouring facets, where over COARSE_ANGLE
-    coarse_on_faces: set  # ... those whose facets lie on CAD faces (``_cad_faces``), which told curvature from features
+    coarse: dict[str, CoarseSurface]  # facet group name -> how it was read, where too coarse to tell its curvature
+
+
+@dataclass
+class CoarseSurface:
+    """A facet group whose facets meet at over COARSE_ANGLE on average (``_coarse_groups``)."""
+
+    angle: float  # the mean angle (radians) between its neighbouring facets, its sharp edges aside
+    on_faces: bool  # its facets lie on CAD faces (``_cad_faces``), which told its curvature from its features
+    edges: np.ndarray  # which surface edges lie between two of its facets
+    largest_move: float = 0.0  # the largest move of those edges' midpoints
 
 
 @dataclass
@@ -98,10 +107,10 @@ def curve_if_straight(gmsh, tdim: int, path) -> tuple[str | None, list[str]]:
             f"surface edge midpoints moved onto smooth surfaces through its facets (largest move {done.largest:.3g}, "
             f"{100 * done.largest_share:.0f} % of its edge{unfolded}); curve = \"off\" keeps it straight")
     log.info(note)
-    return note, [f"{Path(path).name}: {name}: neighbouring facets meet at {np.degrees(angle):.0f} degrees on average, too "
-            f"coarse to tell its curvature well: {COARSE_READING[name in done.coarse_on_faces]}, and may be off by a part of its "
-            f"sag (up to {done.largest:.2g} here), which can move an estimated E by several % -- mesh it finer (2-3x "
-            "more facets across it)" for name, angle in done.coarse.items()]
+    return note, [f"{Path(path).name}: {name}: neighbouring facets meet at {np.degrees(group.angle):.0f} degrees on average, "
+            f"too coarse to tell its curvature well: {COARSE_READING[group.on_faces]}, and may be off by a part of its "
+            f"sag (its midpoints moved up to {group.largest_move:.2g}), which can move an estimated E by several % -- mesh it "
+            "finer (2-3x more facets across it)" for name, group in done.coarse.items()]
 
 
 # How a coarse surface was read, and what that cost on the plain-gmsh pelvis family's
@@ -139,9 +148,9 @@ def curve_mesh(gmsh, tdim: int) -> Curving | None:
     straightened = _unfold(gmsh, tdim, nodes, targets - move)
     size = np.linalg.norm(move, axis=1)
     at = int(np.argmax(size))
-    on_faces = {name for name, (_, faces) in coarse.items() if faces}
-    return Curving(len(nodes), float(size[at]), float(size[at] / length[at]), straightened,
-                   {name: angle for name, (angle, _) in coarse.items()}, on_faces)
+    for group in coarse.values():
+        group.largest_move = float(size[group.edges].max(initial=0.0))
+    return Curving(len(nodes), float(size[at]), float(size[at] / length[at]), straightened, coarse)
 
 
 UNFOLD_STEPS = (0.5, 0.25, 0.0)  # the share of its move a folding cell's surface midpoint keeps, tried in turn
@@ -369,17 +378,17 @@ def _bend(surface: Surface, edges: Edges, angles: np.ndarray, tdim: int) -> floa
     return float(np.max(np.where(edges.curvature(angles), angles, 0.0), initial=0.0))
 
 
-def _coarse_groups(gmsh, tdim: int, surface: Surface, edges: Edges, angles: np.ndarray) -> dict:
-    """Per facet group, (the mean angle between its neighbouring facets, its sharp edges
-    aside; whether they all lie on CAD faces), where that angle is over COARSE_ANGLE:
-    too few facets to tell its curvature (a radius of curvature under ~3 facet edges).
+def _coarse_groups(gmsh, tdim: int, surface: Surface, edges: Edges, angles: np.ndarray) -> dict[str, CoarseSurface]:
+    """The facet groups whose neighbouring facets meet at over COARSE_ANGLE on average
+    (their sharp edges aside): too few facets to tell their curvature (a radius of
+    curvature under ~3 facet edges).
     Off CAD faces, a tube with six facets or fewer around meets at SHARP_ANGLE or more,
     as a prism's sides do: it is taken for one."""
     if tdim == 2:
         return {}
     key = np.sort(surface.facets, axis=1)
     index = {tuple(row): i for i, row in enumerate(key.tolist())}
-    out = {}
+    out: dict[str, CoarseSurface] = {}
     for dim, tag in gmsh.model.getPhysicalGroups(tdim - 1):
         rows = []
         for entity in gmsh.model.getEntitiesForPhysicalGroup(dim, tag):
@@ -391,7 +400,7 @@ def _coarse_groups(gmsh, tdim: int, surface: Surface, edges: Edges, angles: np.n
         bent = angles[inside & ((angles < SHARP_ANGLE) | edges.one_face)]
         if len(bent) and float(np.mean(bent)) > COARSE_ANGLE:
             name = gmsh.model.getPhysicalName(dim, tag) or str(tag)
-            out[name] = (float(np.mean(bent)), bool((surface.face[mine] >= 0).all()))
+            out[name] = CoarseSurface(float(np.mean(bent)), bool((surface.face[mine] >= 0).all()), inside)
     return out
 
 

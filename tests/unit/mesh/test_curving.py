@@ -134,7 +134,7 @@ def test_coarse_surfaces_are_named():
     with GmshModel("coarse") as gmsh:
         _box_with_ball_and_tube(gmsh, 1.1)
         done = curving.curve_mesh(gmsh, 3)
-        assert "ball_surface" in done.coarse and np.degrees(done.coarse["ball_surface"]) > 20, done.coarse
+        assert "ball_surface" in done.coarse and np.degrees(done.coarse["ball_surface"].angle) > 20, done.coarse
     with GmshModel("fine") as gmsh:
         _box_with_ball_and_tube(gmsh, 0.45)
         assert curving.curve_mesh(gmsh, 3).coarse == {}
@@ -173,7 +173,8 @@ def test_a_coarse_tube_is_read_from_its_cad_face(monkeypatch, faces_known, close
             p = np.reshape(f, (3, 3))
             edge_points |= {tuple(np.ravel(sorted((tuple(p[i]), tuple(p[j]))))) for i, j in ((0, 1), (1, 2), (2, 0))}
         done = curving.curve_mesh(gmsh, 3)
-        assert "tube" in done.coarse and ("tube" in done.coarse_on_faces) == faces_known  # the warning says which
+        assert "tube" in done.coarse and done.coarse["tube"].on_faces == faces_known  # the warning says which
+        assert 0 < done.coarse["tube"].largest_move <= done.largest
         curved, chord = _curved_and_chord(gmsh, _thin_tube, edge_points)
         assert len(curved) > 200
         if faces_known:
