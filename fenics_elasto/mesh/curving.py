@@ -78,8 +78,7 @@ class CoarseSurface:
 
     angle: float  # the mean angle (radians) between its neighbouring facets, its sharp edges aside
     on_faces: bool  # its facets lie on CAD faces (``_cad_faces``), which told its curvature from its features
-    edges: np.ndarray  # which surface edges lie between two of its facets
-    largest_move: float = 0.0  # the largest move of those edges' midpoints
+    largest_move: float  # the largest move of the midpoints of edges between two of its facets
 
 
 @dataclass
@@ -136,20 +135,18 @@ def curve_mesh(gmsh, tdim: int) -> Curving | None:
     if _bend(surface, edges, angles, tdim) < BENT_ANGLE:
         return None
     targets = midpoint_targets(surface, edges, patches, angles, position, tdim)
-    coarse = _coarse_groups(gmsh, tdim, surface, edges, angles)  # before the order-2 elements replace these
+    move = targets - (position[edges.ends[:, 0]] + position[edges.ends[:, 1]]) / 2
+    size = np.linalg.norm(move, axis=1)
+    coarse = _coarse_groups(gmsh, tdim, surface, edges, angles, size)  # before the order-2 elements replace these
     renumber = _set_order_2(gmsh, tdim)
     midpoint = _midpoint_nodes(gmsh, tdim)
-    move = targets - (position[edges.ends[:, 0]] + position[edges.ends[:, 1]]) / 2
     length = np.linalg.norm(position[edges.ends[:, 1]] - position[edges.ends[:, 0]], axis=1)
     ends = np.sort(renumber[edges.ends], axis=1)
     nodes = np.array([midpoint[(int(a), int(b))] for a, b in ends])
     for node, point in zip(nodes, targets):
         gmsh.model.mesh.setNode(int(node), point, [])
     straightened = _unfold(gmsh, tdim, nodes, targets - move)
-    size = np.linalg.norm(move, axis=1)
     at = int(np.argmax(size))
-    for group in coarse.values():
-        group.largest_move = float(size[group.edges].max(initial=0.0))
     return Curving(len(nodes), float(size[at]), float(size[at] / length[at]), straightened, coarse)
 
 
@@ -258,15 +255,23 @@ def _cad_faces(gmsh, tdim: int, facets: np.ndarray) -> np.ndarray:
     surface merged from an STL, or a mesh converted from elsewhere, whose one entity may
     hold a box's edges."""
     out = np.full(len(facets), -1, np.int64)
-    kind = CELLS[tdim - 1][0]
-    index = {tuple(row): i for i, row in enumerate(np.sort(facets, axis=1).tolist())}
+    index = _facet_index(facets)
     for _, tag in gmsh.model.getEntities(tdim - 1):
-        if not gmsh.model.getBoundary([(tdim - 1, tag)], oriented=False):
-            continue
-        _, nodes = gmsh.model.mesh.getElementsByType(kind, tag)
-        rows = [index.get(tuple(r)) for r in np.sort(np.asarray(nodes, np.int64).reshape(-1, tdim), axis=1).tolist()]
-        out[[r for r in rows if r is not None]] = tag
+        if gmsh.model.getBoundary([(tdim - 1, tag)], oriented=False):
+            out[_entity_facets(gmsh, tdim, index, tag)] = tag
     return out
+
+
+def _facet_index(facets: np.ndarray) -> dict[tuple, int]:
+    """Surface facets (node-tag rows) by their sorted node tags."""
+    return {tuple(row): i for i, row in enumerate(np.sort(facets, axis=1).tolist())}
+
+
+def _entity_facets(gmsh, tdim: int, index: dict[tuple, int], entity: int) -> list[int]:
+    """The surface facets (rows of ``index``'s facets) that a gmsh facet entity's elements are."""
+    _, nodes = gmsh.model.mesh.getElementsByType(CELLS[tdim - 1][0], entity)
+    rows = np.sort(np.asarray(nodes, np.int64).reshape(-1, tdim), axis=1).tolist()
+    return [i for i in (index.get(tuple(r)) for r in rows) if i is not None]
 
 
 def _cells_with_regions(gmsh, tdim: int) -> tuple[np.ndarray, np.ndarray]:
@@ -378,29 +383,28 @@ def _bend(surface: Surface, edges: Edges, angles: np.ndarray, tdim: int) -> floa
     return float(np.max(np.where(edges.curvature(angles), angles, 0.0), initial=0.0))
 
 
-def _coarse_groups(gmsh, tdim: int, surface: Surface, edges: Edges, angles: np.ndarray) -> dict[str, CoarseSurface]:
+def _coarse_groups(gmsh, tdim: int, surface: Surface, edges: Edges, angles: np.ndarray,
+                   moves: np.ndarray) -> dict[str, CoarseSurface]:
     """The facet groups whose neighbouring facets meet at over COARSE_ANGLE on average
     (their sharp edges aside): too few facets to tell their curvature (a radius of
     curvature under ~3 facet edges).
     Off CAD faces, a tube with six facets or fewer around meets at SHARP_ANGLE or more,
-    as a prism's sides do: it is taken for one."""
+    as a prism's sides do: it is taken for one. ``moves``: how far each surface edge's
+    midpoint moves."""
     if tdim == 2:
         return {}
-    key = np.sort(surface.facets, axis=1)
-    index = {tuple(row): i for i, row in enumerate(key.tolist())}
+    index = _facet_index(surface.facets)
     out: dict[str, CoarseSurface] = {}
     for dim, tag in gmsh.model.getPhysicalGroups(tdim - 1):
-        rows = []
+        mine = np.zeros(len(surface.facets), bool)
         for entity in gmsh.model.getEntitiesForPhysicalGroup(dim, tag):
-            _, nodes = gmsh.model.mesh.getElementsByType(CELLS[tdim - 1][0], entity)
-            rows += [index.get(tuple(r)) for r in np.sort(np.asarray(nodes, np.int64).reshape(-1, tdim), axis=1).tolist()]
-        mine = np.zeros(len(key), bool)
-        mine[[r for r in rows if r is not None]] = True
+            mine[_entity_facets(gmsh, tdim, index, entity)] = True
         inside = mine[edges.facets[:, 0]] & (edges.facets[:, 1] >= 0) & mine[np.maximum(edges.facets[:, 1], 0)]
         bent = angles[inside & ((angles < SHARP_ANGLE) | edges.one_face)]
         if len(bent) and float(np.mean(bent)) > COARSE_ANGLE:
             name = gmsh.model.getPhysicalName(dim, tag) or str(tag)
-            out[name] = CoarseSurface(float(np.mean(bent)), bool((surface.face[mine] >= 0).all()), inside)
+            out[name] = CoarseSurface(float(np.mean(bent)), bool((surface.face[mine] >= 0).all()),
+                                      float(moves[inside].max(initial=0.0)))
     return out
 
 
