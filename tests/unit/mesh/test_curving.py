@@ -66,6 +66,15 @@ def _surface_as_points(gmsh, surface: curving.Surface) -> set:
     return {tuple(np.round(position[f], 9).ravel().tolist()) for f in surface.facets}
 
 
+def _edge_points(gmsh, surface: curving.Surface) -> set:
+    """The surface's straight edges, each as its two ends' coordinates (sorted, flat)."""
+    out = set()
+    for f in _surface_as_points(gmsh, surface):
+        p = np.reshape(f, (3, 3))
+        out |= {tuple(np.ravel(sorted((tuple(p[i]), tuple(p[j]))))) for i, j in ((0, 1), (1, 2), (2, 0))}
+    return out
+
+
 def test_midpoints_land_on_the_smooth_surfaces_and_flat_faces_stay():
     """On the ball (an interface) and the tube (a cavity with flat caps): the curved
     midpoints lie over 16x closer to the exact surfaces than the chords' midpoints
@@ -75,13 +84,7 @@ def test_midpoints_land_on_the_smooth_surfaces_and_flat_faces_stay():
     with GmshModel("curving") as gmsh:
         _box_with_ball_and_tube(gmsh, 0.45)
         assert curving.straight_sided(gmsh, 3)
-        before = curving.mesh_surfaces(gmsh, 3, node_positions(gmsh))
-        points = _surface_as_points(gmsh, before)
-        edges = set()
-        for f in points:
-            p = np.reshape(f, (3, 3))
-            edges |= {tuple(sorted((tuple(p[i]), tuple(p[j])))) for i, j in ((0, 1), (1, 2), (2, 0))}
-        edge_points = {tuple(np.ravel(e)) for e in edges}
+        edge_points = _edge_points(gmsh, curving.mesh_surfaces(gmsh, 3, node_positions(gmsh)))
         done = curving.curve_mesh(gmsh, 3)
         assert done is not None and done.moved > 1000 and done.largest_share < curving.MOVE_LIMIT + 1e-9
         assert not curving.straight_sided(gmsh, 3)
@@ -168,10 +171,7 @@ def test_a_coarse_tube_is_read_from_its_cad_face(monkeypatch, faces_known, close
         gmsh.model.mesh.generate(3)
         before = curving.mesh_surfaces(gmsh, 3, node_positions(gmsh))
         assert (before.face >= 0).all() == faces_known
-        edge_points = set()
-        for f in _surface_as_points(gmsh, before):
-            p = np.reshape(f, (3, 3))
-            edge_points |= {tuple(np.ravel(sorted((tuple(p[i]), tuple(p[j]))))) for i, j in ((0, 1), (1, 2), (2, 0))}
+        edge_points = _edge_points(gmsh, before)
         done = curving.curve_mesh(gmsh, 3)
         assert "tube" in done.coarse and done.coarse["tube"].on_faces == faces_known  # the warning says which
         assert 0 < done.coarse["tube"].largest_move <= done.largest
