@@ -196,10 +196,10 @@ def pressure_examples(problem, count: int, length: float, rng, levels: int) -> n
     level_of = np.arange(count) % min(levels, count)
     for level, theta in enumerate(material_levels(problem, min(levels, count), rng)):
         chosen = np.flatnonzero(level_of == level)
-        factor = model.factorize(forward.coefficients(theta)[0], forward.clamped)
         B, X = model.dofs.dense(len(chosen)), model.dofs.dense(len(chosen))
         B.getDenseArray()[:] = rhs[:, chosen]
-        factor.solve_many(B, X)
+        with model.solvers.one_at_a_time():
+            model.factorize(forward.coefficients(theta)[0], forward.clamped).solve_many(B, X)
         rows = forward.loaded.dofs(model.dofs.bs).ravel()
         fields = X.getDenseArray()[rows].reshape(len(forward.loaded), forward.gdim * len(chosen))
         out[:, chosen] = forward.loaded.gather(fields).reshape(-1, len(chosen))

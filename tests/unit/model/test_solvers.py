@@ -105,6 +105,19 @@ def test_cache_keeps_two_values_and_reuses_the_oldest(cantilever):
     assert model.factorizations == 3 and model.stats.analyses == 2
 
 
+def test_values_one_at_a_time_refill_one_solver(cantilever):
+    """Training's levels: each refills the previous one's factors (one analysis, one
+    solver alive); afterwards the cache holds two again."""
+    model = ElasticModel(cantilever, SolverSettings(method="direct"))
+    rhs = _load(model)
+    for E in (500.0, 1000.0, 3000.0):
+        with model.solvers.one_at_a_time():
+            _solve_at(model, cantilever, np.array([E]), rhs)
+    assert model.factorizations == 3 and model.stats.analyses == 1 and len(list(model.solvers)) == 1
+    _solve_at(model, cantilever, np.array([500.0]), rhs)
+    assert model.stats.analyses == 2 and len(list(model.solvers)) == 2
+
+
 def test_a_nearby_material_value_borrows_the_factors(phantom_p1):
     """A single solve at a new material value within NEARBY_RATIO of a factorized one
     (simulate's) runs CG on the factors already made -- no factorization -- and equals a
