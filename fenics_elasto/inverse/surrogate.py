@@ -219,11 +219,12 @@ class MaterialSurrogate:
         The last ``residuals`` at this theta on this space answers, if there was one: the
         logs quote it after ``refine`` has just worked it out (each costs two products of
         the space's full columns: 4.4 s at rank 240 on the default phantom)."""
-        if self._last_residuals is not None and self._last_residuals[0] == self._at(theta):
+        if self._last_residuals is not None and self._last_residuals[0] == self._key(theta):
             return float(self._last_residuals[2][0])
         return float(self.residuals(theta)[1][0])
 
-    def _at(self, theta) -> tuple[bytes, int]:
+    def _key(self, theta) -> tuple[bytes, int]:
+        """What a residual depends on: theta, and the space (which only grows)."""
         return np.asarray(theta, float).tobytes(), self.size
 
     def residuals(self, theta, q=None) -> tuple[list[np.ndarray], np.ndarray]:
@@ -233,7 +234,7 @@ class MaterialSurrogate:
         of their derivatives along q, K V da_k q + D_k (G + V a) q (one column per
         estimated constant); and each one's norm relative to its load (K G; D_k (G + V a) q):
         0 is exact."""
-        if q is None and self._last_residuals is not None and self._last_residuals[0] == self._at(theta) \
+        if q is None and self._last_residuals is not None and self._last_residuals[0] == self._key(theta) \
                 and len(self._last_residuals[1]) == 1:
             return self._last_residuals[1], self._last_residuals[2]
         c, dc, a, da = self._reduced(theta)
@@ -254,5 +255,5 @@ class MaterialSurrogate:
             blocks.append(R)
             relative.append(np.sqrt(np.sum(self._dot(R, R).diagonal())
                                     / max(np.sum(self._dot(load, load).diagonal()), 1e-300)))
-        self._last_residuals = (self._at(theta), blocks, np.array(relative))
+        self._last_residuals = (self._key(theta), blocks, np.array(relative))
         return blocks, np.array(relative)

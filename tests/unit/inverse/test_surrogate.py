@@ -199,6 +199,9 @@ def test_refined_on_nearby_factors_it_is_a_full_solve(inclusion):
     assert relative_error(J, problem.observation.rows(X1)) < 1e-7
     for k in range(2):
         assert relative_error(dJ[k] @ q, problem.observation.rows(dX1[k]) @ q) < 1e-7, k
+    remembered = surrogate.residual(theta1)  # the refinement's last, as the log quotes it
+    surrogate._last_residuals = None
+    assert remembered == surrogate.residual(theta1) < 1e-9
 
 
 def test_column_blocks_multiply_as_the_matrix_they_hold():
@@ -223,6 +226,8 @@ def test_affine_pieces_sum_to_the_stiffness(inclusion):
     problem, W = inclusion
     surrogate = MaterialSurrogate(problem, W)
     assert len(surrogate.terms) == 3 and len(problem.model.stiffness.terms) == 4
+    entries = [M.getInfo()["nz_used"] for M in surrogate.terms]
+    assert min(entries) < 0.5 * max(entries)  # the inclusion's piece on its own cells' sparsity
     theta = at(problem, 7.0, 0.41)
     Y = np.random.default_rng(3).standard_normal((len(surrogate.G), 2))
     s, ds = surrogate._coefficients(theta)
