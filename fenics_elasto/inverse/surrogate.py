@@ -204,9 +204,8 @@ class MaterialSurrogate:
         return self.matched_G + self._on_matched(a), np.array([self._on_matched(d) for d in da])
 
     def _on_matched(self, a: np.ndarray) -> np.ndarray:
-        """matched_V @ a (n_matched, gdim, r) as one matrix product: numpy's product of the
-        3-D array is a stack of n_matched small ones, 5x slower (0.69 s against 0.14 s at
-        rank 240 on the default phantom, 698 directions; a sixth of that estimate)."""
+        """matched_V @ a (n_matched, gdim, r) as one product (numpy's 3-D one is a stack of
+        n_matched small ones: 5x slower at rank 240 on the default phantom)."""
         n, gdim, size = self.matched_V.shape
         return (self.matched_V.reshape(n * gdim, size) @ a).reshape(n, gdim, a.shape[1])
 
@@ -216,24 +215,20 @@ class MaterialSurrogate:
 
     def residual(self, theta) -> float:
         """||K(theta)(G + V a)|| on the free DOFs relative to ||K(theta) G|| there: 0 is exact.
-        The last ``residuals`` at this theta on this space answers, if there was one: the
-        logs quote it after ``refine`` has just worked it out (each costs two products of
-        the space's full columns: 4.4 s at rank 240 on the default phantom)."""
+        The latest ``residuals`` at this theta on this space answers if there is one (the
+        logs quote it after ``refine`` worked it out: 4.4 s each at rank 240)."""
         if self._last_residuals is not None and self._last_residuals[0] == self._key(theta):
             return float(self._last_residuals[2][0])
         return float(self.residuals(theta)[1][0])
 
-    def _key(self, theta) -> tuple[bytes, int]:
-        """What a residual depends on: theta, and the space (which only grows)."""
+    def _key(self, theta) -> tuple[bytes, int]:  # what a residual depends on (the space only grows)
         return np.asarray(theta, float).tobytes(), self.size
 
     def residuals(self, theta, q=None) -> tuple[list[np.ndarray], np.ndarray]:
-        """The equations' residuals on the free DOFs (owned rows, zero on the clamped
-        DOFs): K (G + V a) of the mode fields (r columns), and with controls ``q`` (r, or
-        r x states) that
-        of their derivatives along q, K V da_k q + D_k (G + V a) q (one column per
-        estimated constant); and each one's norm relative to its load (K G; D_k (G + V a) q):
-        0 is exact."""
+        """The equations' residuals on the free DOFs (owned rows, zero on the clamped DOFs):
+        K (G + V a) of the mode fields (r columns), and with controls ``q`` (r, or r x states)
+        that of their derivatives along q, K V da_k q + D_k (G + V a) q (a column per estimated
+        constant); and each one's norm relative to its load (K G; D_k (G + V a) q): 0 is exact."""
         if q is None and self._last_residuals is not None and self._last_residuals[0] == self._key(theta) \
                 and len(self._last_residuals[1]) == 1:
             return self._last_residuals[1], self._last_residuals[2]
