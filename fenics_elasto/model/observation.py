@@ -52,19 +52,14 @@ def closest_cells(mesh, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     A point inside a cell (or on its boundary) takes the first cell it collides with,
     through the bounding-box tree; the closest-entity search runs for the others only
     (the default phantom's 5,522 matched nodes: 0.24 s instead of 2.2 s)."""
-    tdim, gdim = mesh.topology.dim, mesh.geometry.dim
-    xyz = np.zeros((len(points), 3))
-    xyz[:, :gdim] = points
-    owned = np.arange(mesh.topology.index_map(tdim).size_local, dtype=np.int32)
     distance = np.full(len(points), np.inf)
-    cells = np.full(len(points), -1, np.int32)
-    if len(owned) == 0 or len(points) == 0:
-        return cells, distance
-    tree = geo.bb_tree(mesh, tdim, entities=owned)
-    colliding = geo.compute_colliding_cells(mesh, geo.compute_collisions_points(tree, xyz), xyz)
-    inside = np.diff(colliding.offsets) > 0
-    cells[inside] = colliding.array[colliding.offsets[:-1][inside]]
-    outside = np.flatnonzero(~inside)
+    search = _owned_tree(mesh, points)
+    if search is None:
+        return np.full(len(points), -1, np.int32), distance
+    tree, owned, xyz = search
+    tdim = mesh.topology.dim
+    cells = _colliding_cell(mesh, tree, xyz)
+    outside = np.flatnonzero(cells < 0)
     if len(outside):
         cells[outside] = geo.compute_closest_entity(tree, geo.create_midpoint_tree(mesh, tdim, owned), mesh,
                                                     xyz[outside])
@@ -85,15 +80,29 @@ def distances_to_body(mesh, points: np.ndarray) -> np.ndarray:
 
 def _inside_owned(mesh, points: np.ndarray) -> np.ndarray:
     """Whether each point lies in one of this rank's owned cells."""
+    search = _owned_tree(mesh, points)
+    return np.zeros(len(points), bool) if search is None else _colliding_cell(mesh, search[0], search[2]) >= 0
+
+
+def _owned_tree(mesh, points: np.ndarray):
+    """(the bounding-box tree of this rank's owned cells, those cells, the points padded to
+    3D); None where this rank owns no cells or there are no points."""
     tdim, gdim = mesh.topology.dim, mesh.geometry.dim
     owned = np.arange(mesh.topology.index_map(tdim).size_local, dtype=np.int32)
     if len(owned) == 0 or len(points) == 0:
-        return np.zeros(len(points), bool)
+        return None
     xyz = np.zeros((len(points), 3))
     xyz[:, :gdim] = points
-    tree = geo.bb_tree(mesh, tdim, entities=owned)
+    return geo.bb_tree(mesh, tdim, entities=owned), owned, xyz
+
+
+def _colliding_cell(mesh, tree, xyz: np.ndarray) -> np.ndarray:
+    """The first cell of ``tree`` each point (padded to 3D) lies in or on; -1 where none."""
     colliding = geo.compute_colliding_cells(mesh, geo.compute_collisions_points(tree, xyz), xyz)
-    return np.diff(colliding.offsets) > 0
+    inside = np.diff(colliding.offsets) > 0
+    cells = np.full(len(xyz), -1, np.int32)
+    cells[inside] = colliding.array[colliding.offsets[:-1][inside]]
+    return cells
 
 
 OUTSIDE_REFERENCE = 0.25  # reference coordinates further outside the cell than this: another preimage
