@@ -187,7 +187,7 @@ class Estimator:
         o = self.options
         if self.inner_name == "gauss-newton":
             return GaussNewton(self.problem, self.initial_controls(self.params.initial), o.anchor, o.inner_maxiter,
-                               o.inner_tol**2)
+                               o.gauss_newton_tol)
         inner = LBFGS(self.problem, self.inner_name == "lbfgs-forces", o.inner_maxiter, o.inner_tol)
         start = self.initial_controls(self.params.initial)
         inner.control_scale = max(float(np.sqrt(np.mean(start**2))), 1e-300)
