@@ -52,12 +52,17 @@ def stiffness_quadrature(V: fem.FunctionSpace) -> dict:
 
 
 def stiffness_form(scene, V: fem.FunctionSpace, E, nu) -> fem.Form:
-    """K's form on V with the materials (E, nu) per region: one matrix at fixed values."""
+    """K's form on V with the materials (E, nu) per region: one matrix at fixed values.
+    The Lame values are the form's constants, not literals in it: a literal is part of
+    the form's signature, so every new material value compiled the kernels again -- 1.2 s
+    of each estimate's degree-3 solve in `make demo` (18 estimates), and of every
+    simulation at new materials."""
     u, v = ufl.TrialFunction(V), ufl.TestFunction(V)
-    dx = ufl.Measure("dx", domain=scene.mesh, subdomain_data=scene.cell_tags, metadata=stiffness_quadrature(V))
+    mesh = scene.mesh
+    dx = ufl.Measure("dx", domain=mesh, subdomain_data=scene.cell_tags, metadata=stiffness_quadrature(V))
     mu, lam = lame(E, nu, scene.plane)
-    return fem.form(sum(2 * float(m) * ufl.inner(epsilon(u), epsilon(v)) * dx(material.tag)
-                        + float(lm) * ufl.div(u) * ufl.div(v) * dx(material.tag)
+    return fem.form(sum(fem.Constant(mesh, 2.0 * float(m)) * ufl.inner(epsilon(u), epsilon(v)) * dx(material.tag)
+                        + fem.Constant(mesh, float(lm)) * ufl.div(u) * ufl.div(v) * dx(material.tag)
                         for material, m, lm in zip(scene.materials, mu, lam)))
 
 

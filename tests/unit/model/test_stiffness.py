@@ -41,3 +41,21 @@ def test_fixed_stiffness_refuses_other_materials(phantom_p1):
         fixed.coefficients(2 * E, nu)
     with pytest.raises(TypeError, match="no derivatives"):
         fixed.coefficient_derivatives(E, nu)
+
+
+def test_new_materials_reuse_the_compiled_form(phantom_p1):
+    """The Lame values are constants of the form, not literals compiled into it: K at
+    other materials is the same kernel (no JIT compile) and scales with E as it must."""
+    import dolfinx.fem.petsc
+
+    from fenics_elasto.model.stiffness import stiffness_form
+
+    E, nu = material_values(phantom_p1)
+    V = ElasticModel(phantom_p1).dofs.V
+    forms = [stiffness_form(phantom_p1, V, scale * E, nu) for scale in (1.0, 2.5)]
+    assert forms[0].module is forms[1].module
+    K1, K2 = (dolfinx.fem.petsc.assemble_matrix(form) for form in forms)
+    K1.assemble()
+    K2.assemble()
+    K2.axpy(-2.5, K1)
+    assert K2.norm() < 1e-12 * K1.norm() * 2.5
