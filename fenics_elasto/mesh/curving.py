@@ -90,6 +90,7 @@ class Surface:
     normals: np.ndarray  # (m, 3) unit normals, oriented consistently per surface
     group: np.ndarray  # (m,) which surface each facet is on
     face: np.ndarray  # (m,) the CAD face (gmsh surface entity) each facet lies on, -1 where unknown
+    index: dict[tuple, int]  # each facet's row by its sorted node tags (_facet_index): gmsh's elements -> rows
 
 
 def curve_if_straight(gmsh, tdim: int, path) -> tuple[str | None, list[str]]:
@@ -242,10 +243,11 @@ def mesh_surfaces(gmsh, tdim: int, position: np.ndarray) -> Surface:
     rows = np.where(swap, rows + 1, rows)
     group = np.where(interface[keep], low * (int(region.max()) + 1) + high, -1)  # boundary: -1
     normals = _outward_normals(position, facets[rows], position[opposite[rows]], tdim)
-    return Surface(facets[rows], normals, group, _cad_faces(gmsh, tdim, facets[rows]))
+    index = _facet_index(facets[rows])
+    return Surface(facets[rows], normals, group, _cad_faces(gmsh, tdim, index), index)
 
 
-def _cad_faces(gmsh, tdim: int, facets: np.ndarray) -> np.ndarray:
+def _cad_faces(gmsh, tdim: int, index: dict[tuple, int]) -> np.ndarray:
     """The gmsh entity each facet lies on, where that entity is a CAD face: one bounded
     by curves (gmsh writes a cylinder as its side and two caps, a box as six faces, and
     keeps their bounding curves in the .msh; classifySurfaces' patches have them too). A
@@ -253,9 +255,8 @@ def _cad_faces(gmsh, tdim: int, facets: np.ndarray) -> np.ndarray:
     whatever its angle: a bone bar meshed with four facets around is a cylinder, not a
     prism. -1 (the angles alone decide) on an entity with no bounding curves -- a closed
     surface merged from an STL, or a mesh converted from elsewhere, whose one entity may
-    hold a box's edges."""
-    out = np.full(len(facets), -1, np.int64)
-    index = _facet_index(facets)
+    hold a box's edges. ``index``: the surface facets' (``_facet_index``)."""
+    out = np.full(len(index), -1, np.int64)
     for _, tag in gmsh.model.getEntities(tdim - 1):
         if gmsh.model.getBoundary([(tdim - 1, tag)], oriented=False):
             out[_entity_facets(gmsh, tdim, index, tag)] = tag
@@ -393,12 +394,11 @@ def _coarse_groups(gmsh, tdim: int, surface: Surface, edges: Edges, angles: np.n
     midpoint moves."""
     if tdim == 2:
         return {}
-    index = _facet_index(surface.facets)
     out: dict[str, CoarseSurface] = {}
     for dim, tag in gmsh.model.getPhysicalGroups(tdim - 1):
         mine = np.zeros(len(surface.facets), bool)
         for entity in gmsh.model.getEntitiesForPhysicalGroup(dim, tag):
-            mine[_entity_facets(gmsh, tdim, index, entity)] = True
+            mine[_entity_facets(gmsh, tdim, surface.index, entity)] = True
         inside = mine[edges.facets[:, 0]] & (edges.facets[:, 1] >= 0) & mine[np.maximum(edges.facets[:, 1], 0)]
         bent = angles[inside & ((angles < SHARP_ANGLE) | edges.one_face)]
         if len(bent) and float(np.mean(bent)) > COARSE_ANGLE:
