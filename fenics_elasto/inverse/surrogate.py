@@ -214,11 +214,9 @@ class MaterialSurrogate:
         return self.G + self.V @ self.coefficients(theta)
 
     def residual(self, theta) -> float:
-        """||K(theta)(G + V a)|| on the free DOFs relative to ||K(theta) G|| there: 0 is exact.
-        The latest ``residuals`` at this theta on this space answers if there is one (the
-        logs quote it after ``refine`` worked it out: 4.4 s each at rank 240)."""
-        if self._last_residuals is not None and self._last_residuals[0] == self._key(theta):
-            return float(self._last_residuals[2][0])
+        """||K(theta)(G + V a)|| on the free DOFs relative to ||K(theta) G|| there: 0 is exact
+        (the latest ``residuals`` at this theta answers: the logs quote it after ``refine``
+        worked it out, 4.4 s each at rank 240)."""
         return float(self.residuals(theta)[1][0])
 
     def _key(self, theta) -> tuple[bytes, int]:  # what a residual depends on (the space only grows)
@@ -228,10 +226,11 @@ class MaterialSurrogate:
         """The equations' residuals on the free DOFs (owned rows, zero on the clamped DOFs):
         K (G + V a) of the mode fields (r columns), and with controls ``q`` (r, or r x states)
         that of their derivatives along q, K V da_k q + D_k (G + V a) q (a column per estimated
-        constant); and each one's norm relative to its load (K G; D_k (G + V a) q): 0 is exact."""
-        if q is None and self._last_residuals is not None and self._last_residuals[0] == self._key(theta) \
-                and len(self._last_residuals[1]) == 1:
-            return self._last_residuals[1], self._last_residuals[2]
+        constant); and each one's norm relative to its load (K G; D_k (G + V a) q): 0 is exact.
+        Without ``q``, the latest call's mode-field residual at this theta on this space
+        answers (it does not depend on q)."""
+        if q is None and self._last_residuals is not None and self._last_residuals[0] == self._key(theta):
+            return self._last_residuals[1][:1], self._last_residuals[2][:1]
         c, dc, a, da = self._reduced(theta)
 
         def on(kept, coefficients, x):  # sum_g coefficients_g (M_g Y) x for the kept M_g Y (Y: G or V)
