@@ -20,9 +20,11 @@ try:
 except ImportError:  # DOLFINx from conda, a container or a source build
     pass
 
+from fenics_elasto.util.memory import retain_freed_memory
 from fenics_elasto.util.threads import share_cores_among_ranks
 
 share_cores_among_ranks()  # under mpiexec: one BLAS thread per core share, not per core
+retain_freed_memory()  # big blocks freed and allocated again reuse their pages (util/memory.py)
 
 from fenics_elasto.util.errors import UserError  # noqa: E402
 from fenics_elasto.model.scene import Scene  # noqa: E402
