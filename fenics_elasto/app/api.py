@@ -8,6 +8,7 @@ command line prints for the same mistake.
 from __future__ import annotations
 
 import os
+from dataclasses import replace
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -124,7 +125,9 @@ def inverse_problem(scene: Scene, target: Target | Mapping[str, Target] | None =
                 "estimate: several states are a mapping {name: Target, ...}")
         states = [{"name": str(name), "target": t.spec()} for name, t in target.items()]
         scene = for_command(scene, "estimate", [("states", states)])
-        problem = InverseProblem(scene, target=[(str(name), t.data(scene.gdim)) for name, t in target.items()])
+        # each state's data with its own checked [target] numbers (noises, weights), as a file's
+        problem = InverseProblem(scene, target=[(str(name), replace(t.data(scene.gdim), spec=state["target"]))
+                                                for (name, t), state in zip(target.items(), scene.config["states"])])
     else:
         require(target is None or isinstance(target, Target), f"estimate: expected a Target, got {type(target).__name__}")
         scene = with_force_reference(for_command(scene, "estimate", [] if target is None else [("target", target.spec())]))

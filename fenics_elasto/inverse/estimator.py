@@ -350,8 +350,9 @@ def _run(estimator: Estimator, warnings: list[str], extent_warnings: list[str], 
     if problem.states.count > 1:  # each state's distances and forces; ``forces`` and ``u`` are the first's
         state_forces = {name: problem.forward.reaction_forces(theta, u)
                         for name, u in zip(problem.states.names, best.evaluation.fields)}
-        record["states"] = {name: {"distances": distances, "forces": f"forces_{name}.csv"}
-                            for name, distances in problem.states.distances(best.evaluation.residual).items()}
+        record["states"] = {name: {"distances": distances, "forces": f"forces_{name}.csv", "weight": float(weight)}
+                            for (name, distances), weight in zip(problem.states.distances(best.evaluation.residual).items(),
+                                                                 problem.states.weights)}
     force_covariance = _force_covariance(estimator, theta, best, post) if not interrupted else {}
     record["wall_time_s"] = round(time.perf_counter() - start, 3)
     return EstimateResult(theta, list(problem.params.labels), best.evaluation.u, forces, best.evaluation, record,

@@ -362,9 +362,11 @@ def build_misfit(scene, node_groups: np.ndarray, target: TargetData, before: int
     return Misfit(blocks)
 
 
-def stacked(misfits: Sequence[Misfit]) -> Misfit:
-    """One Misfit over the states' rows one after another (each over the same observation)."""
-    if len(misfits) == 1:
+def stacked(misfits: Sequence[Misfit], weights: Sequence[float] | np.ndarray | None = None) -> Misfit:
+    """One Misfit over the states' rows one after another (each over the same observation),
+    each state's rows weighed by its entry of ``weights`` too (states.States.weights)."""
+    weights = np.ones(len(misfits)) if weights is None else np.asarray(weights, float)
+    if len(misfits) == 1 and weights[0] == 1.0:
         return misfits[0]
-    return Misfit([(s.stop - s.start, term, float(m.weights[s.start]) if s.stop > s.start else 0.0)
-                   for m in misfits for s, term in zip(m.slices, m.terms)])
+    return Misfit([(s.stop - s.start, term, w * float(m.weights[s.start]) if s.stop > s.start else 0.0)
+                   for m, w in zip(misfits, weights) for s, term in zip(m.slices, m.terms)])

@@ -82,7 +82,7 @@ class InverseProblem:
                    for i, (_, data) in enumerate(targets)]
         self.states = States([name for name, _ in targets], misfits,
                              [data.spec or scene.config["target"] or {} for _, data in targets])
-        self._misfit = stacked(misfits)
+        self._misfit = stacked(misfits, self.states.weights)
 
     # --- several states (states.py): rows and controls one state after another
 

@@ -33,6 +33,9 @@ pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="gl
 
 
 def test_a_freed_block_is_reused_without_faults():
-    pages = (MB << 20) // 4096
-    assert refaults() < 0.02 * pages  # kept: reused in place
-    assert refaults(FENICS_ELASTO_RETAIN_MEMORY="0") > 0.5 * pages  # glibc's default: handed back, faulted again
+    """Kept: reused in place, almost no fault. glibc's default: handed back and faulted
+    in again, a fault per 4 kB page (per 2 MB where the kernel backs every mapping with
+    huge pages: still far more)."""
+    kept = refaults()
+    assert kept < 0.02 * (MB << 20) // 4096
+    assert refaults(FENICS_ELASTO_RETAIN_MEMORY="0") > 20 * max(kept, 1)

@@ -110,6 +110,7 @@ def test_a_measured_force_makes_every_E_absolute(tmp_path):
     ("field_elsewhere", "another frame or unit"),
     ("state_unknown_group", "['bladder'] not in boundary.matched"),
     ("state_twice", "is given twice"),
+    ("state_noise_partial", "stated for some states but not for ['b']"),
 ])
 def test_bad_extra_data_is_one_line(tmp_path, capsys, case, expected):
     problem = inclusion(tmp_path / "case", RATIO, source_size=SOURCE_SIZE)["problem"]
@@ -124,6 +125,9 @@ def test_bad_extra_data_is_one_line(tmp_path, capsys, case, expected):
             "state_unknown_group": ["boundary.matched=['outline']",
                                     f"states=[{{name='a', target={outline}}}}}}}, "
                                     f"{{name='b', target={outline}, bladder='b.stl'}}}}}}]"],
+            "state_noise_partial": ["boundary.matched=['outline']",
+                                    f"states=[{{name='a', target={outline}}}, noise=0.01}}}}, "
+                                    f"{{name='b', target={outline}}}}}}}]"],
             "state_twice": ["boundary.matched=['outline']",
                             f"states=[{{name='a', target={outline}}}}}}}, {{name='a', target={outline}}}}}}}]"],
             "field_outside": [f"target={{displacement='{field}'}}"],
@@ -170,6 +174,54 @@ def test_two_states_narrow_the_interval(tmp_path, two_cases):
         truth = inclusion_force(RATIO, top)
         print(name, total, truth)
         assert np.linalg.norm(total - truth) < 0.05 * np.linalg.norm(truth), (name, total, truth)
+
+
+def displaced_outline(case, path, std: float):
+    """The case's target outline moved by a smooth error of ``std`` (a worse segmentation)."""
+    import pyvista as pv
+
+    outline = pv.read(case["outline"])
+    outline.points[:, :2] += smooth_error(outline.points[:, :2], std, seed=3)
+    outline.save(path)
+    return path
+
+
+def test_each_state_weighs_by_its_own_noise(tmp_path, two_cases):
+    """A state's stated noise weighs its rows (inverse/states.py): the pressed state's
+    outline displaced by a smooth error of 0.02 (4 % of the top's motion) and stated
+    so, the stretched state's exact one stated at 1e-4 (its residual's level). The
+    displaced rows then weigh (1e-4 / 0.02)^2 = 1/40,000: the pair is within 3 %, its
+    interval holding the truth and its sigma the stretched state's alone (measured
+    40.55 +- 1.37 against 39.98 +- 1.38; the pressed state's matched wall motion joins
+    the shared bases). With no noise stated the two residuals give one level and
+    weigh alike: the displaced outline drags E to its bound (1000, sigma 4e4; refused
+    as undetermined unless allowed)."""
+    case_a, case_b, bases = two_cases
+    worse = displaced_outline(case_b, tmp_path / "worse.vtp", 0.02)
+    problem = case_a["problem"]
+    common = ["boundary.matched=['outline']", f"reduction={{bases='{bases}'}}"]
+    state = lambda name, path, noise="": (f"{{name='{name}', target={{surfaces={{outline='{path}'}}, "  # noqa: E731
+                                          f"smooth='off'{noise}}}}}")
+    alone = estimate(tmp_path, "alone", problem, *common,
+                     f"target={{surfaces={{outline='{case_a['outline']}'}}, noise=1e-4}}")
+    stated = estimate(tmp_path, "stated", problem, *common, f"states=[{state('stretched', case_a['outline'], ', noise=1e-4')}, "
+                      f"{state('pressed', worse, ', noise=0.02')}]")
+    pooled = estimate(tmp_path, "pooled", problem, *common, "optimizer.allow_undetermined=true",
+                      f"states=[{state('stretched', case_a['outline'])}, {state('pressed', worse)}]")
+    E = {name: r["materials"]["inclusion"]["E"] for name, r in (("alone", alone), ("stated", stated), ("pooled", pooled))}
+    sd = {name: r["uncertainty"]["inclusion.E"]["std"] for name, r in (("alone", alone), ("stated", stated), ("pooled", pooled))}
+    print(E, sd, stated["uncertainty"]["noise_std"], pooled["uncertainty"]["noise_std"])
+    assert [stated["states"][n]["weight"] for n in ("stretched", "pressed")] == [1.0, pytest.approx(1 / 40_000)]
+    assert stated["uncertainty"]["noise"] == "given" and stated["uncertainty"]["noise_std"] == 1e-4
+    low, high = stated["uncertainty"]["inclusion.E"]["ci95"]
+    assert abs(E["stated"] / E_TRUE - 1) < 0.03 and low < E_TRUE < high and sd["stated"] < 1.1 * sd["alone"], (E, sd)
+    assert sd["pooled"] > 5 * sd["stated"], sd
+    import fenics_elasto as fe
+
+    scene = fe.load_scene(problem, overrides={"boundary.matched": ["outline"]})  # the same from Python
+    api = fe.estimate(scene, {"stretched": fe.Target(surfaces={"outline": case_a["outline"]}, noise=1e-4, smooth="off"),
+                              "pressed": fe.Target(surfaces={"outline": worse}, noise=0.02, smooth="off")}, bases=bases)
+    assert abs(api.values["inclusion.E"] / E["stated"] - 1) < 1e-6, api.values
 
 
 def test_two_states_under_mpi_give_the_serial_answer(tmp_path, two_cases):

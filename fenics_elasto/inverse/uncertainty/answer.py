@@ -39,7 +39,7 @@ class AnswerUncertainty:
         self.undetermined: set[str] = set()
 
     def posterior(self, result: InnerResult | None = None) -> Posterior | None:
-        noise = (self.problem.scene.config["target"] or {}).get("noise")
+        noise = self.problem.states.noise  # [target] noise, or the states' smallest (states.py)
         floor = self.problem.misfit.roughness() if noise is None else 0.0
         return posterior_at(self.profile, result or self.profile.best(), noise, floor)
 

@@ -1,0 +1,34 @@
+"""Several states' noise (inverse/states.py): each state's rows weigh by the noise its
+target states, relative to the smallest; one stated for some states only is refused."""
+
+import numpy as np
+import pytest
+
+from fenics_elasto.inverse.misfit import Misfit, PointTerm, stacked
+from fenics_elasto.inverse.states import States
+from fenics_elasto.util.errors import UserError
+
+
+def states(*noises) -> States:
+    specs = [{} if n is None else {"noise": n} for n in noises]
+    misfits = [Misfit([(2, PointTerm(np.zeros((2, 2))), 1.0)]) for _ in noises]
+    return States([f"s{i}" for i in range(len(noises))], misfits, specs)
+
+
+def test_states_weigh_by_their_stated_noise():
+    s = states(0.02, 0.01, 0.04)
+    assert s.noise == 0.01
+    assert np.allclose(s.weights, [0.25, 1.0, 1 / 16])
+    assert np.allclose(stacked(s.misfits, s.weights).weights, [0.25, 0.25, 1.0, 1.0, 1 / 16, 1 / 16])
+    one = states(0.3)
+    assert one.noise == 0.3 and one.weights.tolist() == [1.0]
+
+
+def test_without_stated_noise_the_states_weigh_alike():
+    s = states(None, None)
+    assert s.noise is None and s.weights.tolist() == [1.0, 1.0]
+
+
+def test_noise_stated_for_some_states_only_is_refused():
+    with pytest.raises(UserError, match=r"not for \['s1'\]"):
+        _ = states(0.01, None).weights
