@@ -111,12 +111,21 @@ def _extent_warnings(problem: InverseProblem, misfit, spec: dict) -> list[str]:
 
 
 def target_warnings(problem: InverseProblem, best: InnerResult) -> list[str]:
-    """The final rms distance against what the target can resolve: NOISE_RATIO x
-    [target] noise if given, else the target's mean edge length."""
-    out, spec = [], problem.scene.config["target"] or {}
-    surfaces = [s for term in problem.misfit.terms for s in getattr(term, "surfaces", [])]
-    distances = problem.distances(best.evaluation.residual)
-    for kind, distance in distances.items():
+    """Each state's final rms distance against what its target can resolve: NOISE_RATIO x
+    its target.noise if given, else the target's mean edge length."""
+    states = problem.states
+    out = []
+    for name, misfit, spec, residual in zip(states.names, states.misfits, states.specs,
+                                            states.split(best.evaluation.residual)):
+        state = f"state {name}: " if states.count > 1 else ""
+        out += [state + line for line in _distance_warnings(misfit, spec, residual)]
+    return out
+
+
+def _distance_warnings(misfit, spec: dict, residual: np.ndarray) -> list[str]:
+    out = []
+    surfaces = [s for term in misfit.terms for s in getattr(term, "surfaces", [])]
+    for kind, distance in misfit.distances(residual).items():
         if spec.get("noise"):
             scale, what = NOISE_RATIO * spec["noise"], f"{NOISE_RATIO:g} x target.noise"
         elif kind == "surface" and surfaces:

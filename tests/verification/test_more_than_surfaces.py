@@ -195,7 +195,8 @@ def test_each_state_weighs_by_its_own_noise(tmp_path, two_cases):
     40.55 +- 1.37 against 39.98 +- 1.38; the pressed state's matched wall motion joins
     the shared bases). With no noise stated the two residuals give one level and
     weigh alike: the displaced outline drags E to its bound (1000, sigma 4e4; refused
-    as undetermined unless allowed)."""
+    as undetermined unless allowed). A noise stated too small is named: the state's
+    final rms distance is above 3x it."""
     case_a, case_b, bases = two_cases
     worse = displaced_outline(case_b, tmp_path / "worse.vtp", 0.02)
     problem = case_a["problem"]
@@ -216,6 +217,12 @@ def test_each_state_weighs_by_its_own_noise(tmp_path, two_cases):
     low, high = stated["uncertainty"]["inclusion.E"]["ci95"]
     assert abs(E["stated"] / E_TRUE - 1) < 0.03 and low < E_TRUE < high and sd["stated"] < 1.1 * sd["alone"], (E, sd)
     assert sd["pooled"] > 5 * sd["stated"], sd
+    assert not any("does not fit" in w for w in stated["warnings"]), stated["warnings"]
+    understated = estimate(tmp_path, "understated", problem, *common,  # the displaced outline claimed 10x better
+                           f"states=[{state('stretched', case_a['outline'], ', noise=1e-4')}, "
+                           f"{state('pressed', worse, ', noise=0.002')}]")
+    assert [w for w in understated["warnings"] if "does not fit" in w][0].startswith("state pressed: the final rms"), \
+        understated["warnings"]
     import fenics_elasto as fe
 
     scene = fe.load_scene(problem, overrides={"boundary.matched": ["outline"]})  # the same from Python
