@@ -14,6 +14,13 @@ from dolfinx import fem
 from fenics_elasto.model.scene import Scene
 
 
+# DofLayout.multiply: columns per sparse-dense product. The whole block at once (the
+# surrogate's first space at rank 240 on the default phantom: ~700 columns of 116k rows,
+# 0.65 GB) made PETSc hold two more copies of it: the start's peak 9.3 GB -> 8.0 GB in
+# slices, E the same to the bit.
+MULTIPLY_COLUMNS = 64
+
+
 def unrolled(blocks: np.ndarray, bs: int) -> np.ndarray:
     """(n, bs) unrolled DOF indices of blocks (nodes) of a vector space."""
     return blocks[:, None] * bs + np.arange(bs)
@@ -126,11 +133,15 @@ class DofLayout:
         return M
 
     def multiply(self, M: PETSc.Mat, Y: np.ndarray) -> np.ndarray:
-        """M Y for owned-row columns Y (numpy), as numpy."""
-        D = self.dense(Y.shape[1])
-        D.getDenseArray()[:] = Y
-        P = M.matMult(D)
-        out = P.getDenseArray().copy()
-        P.destroy()
-        D.destroy()
+        """M Y for owned-row columns Y (numpy), as numpy: MULTIPLY_COLUMNS at a time, so
+        that PETSc's operand and product are a slice's size, not two more copies of Y."""
+        out = np.empty((self.owned, Y.shape[1]))
+        for start in range(0, Y.shape[1], MULTIPLY_COLUMNS):
+            columns = slice(start, min(start + MULTIPLY_COLUMNS, Y.shape[1]))
+            D = self.dense(columns.stop - columns.start)
+            D.getDenseArray()[:] = Y[:, columns]
+            P = M.matMult(D)
+            out[:, columns] = P.getDenseArray()
+            P.destroy()
+            D.destroy()
         return out

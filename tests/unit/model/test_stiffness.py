@@ -59,3 +59,18 @@ def test_new_materials_reuse_the_compiled_form(phantom_p1):
     K2.assemble()
     K2.axpy(-2.5, K1)
     assert K2.norm() < 1e-12 * K1.norm() * 2.5
+
+
+def test_block_products_in_slices_equal_the_matrix_product(phantom_p1):
+    """DofLayout.multiply works MULTIPLY_COLUMNS columns at a time (memory): over a block
+    wider than that, its product is the assembled matrix's, column for column."""
+    from scipy.sparse import csr_matrix
+
+    from fenics_elasto.model.dofs import MULTIPLY_COLUMNS
+
+    model = ElasticModel(phantom_p1)
+    M = model.stiffness.terms[0]
+    Y = np.random.default_rng(0).standard_normal((model.dofs.owned, 2 * MULTIPLY_COLUMNS + 5))
+    indptr, indices, values = M.getValuesCSR()
+    exact = csr_matrix((values, indices, indptr), shape=(model.dofs.owned, model.dofs.owned)) @ Y
+    assert np.allclose(model.dofs.multiply(M, Y), exact, rtol=0, atol=1e-12 * np.abs(exact).max())
