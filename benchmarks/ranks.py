@@ -58,8 +58,8 @@ def main(out: Path, ranks: list[int], profiled: list[int]) -> None:
     problem = source / "problem.toml"
     files = simulate_targets(out / "target", (50.0,), TARGET_SIZE)[50.0]
     target = ind.retarget(problem, {"surfaces": files.surfaces}, name="problem_ranks.toml")
-    # one process's first touch of its memory costs 20-33 s here or 21 s (a VM whose
-    # freed pages go back to the host: docs/performance): the median of SIMULATES runs
+    # one simulate took 18-33 s here across runs, by how much of its memory the VM's host
+    # had taken back (docs/performance, "Freed memory kept"): the median of SIMULATES runs
     times = []
     for _ in range(SIMULATES):
         cli("simulate", problem, "--out", out / "simulate")

@@ -13,8 +13,8 @@ the negative log-likelihood of them all and the posterior's noise is sigma_ref, 
 A noise stated for some states and not for others is refused: an estimated level for
 the rest would have to come from residuals already weighed by the stated ones.
 Without any, the states' residuals give one noise level together, and weigh alike
-(the inclusion with one outline displaced 200x its noise: E dragged to its bound;
-stated, within 1.5 %, tests/verification/test_more_than_surfaces.py).
+(the inclusion with one outline displaced by 200x the other's noise: E dragged to its
+bound; with both noises stated, within 1.5 %, tests/verification/test_more_than_surfaces.py).
 """
 
 from __future__ import annotations
