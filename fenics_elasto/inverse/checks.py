@@ -75,6 +75,10 @@ def _nodes_in(problem, nodes, other) -> np.ndarray:
 EXTENT_RATIO = 1.5  # a target this much larger or smaller than the surface it matches is suspect
 UNITS_RATIO = 3.0  # ... and this much larger is never right (mm against cm is 10x): refused
 NOISE_RATIO = 3.0  # a final rms distance above this x [target] noise fits badly
+# target_warnings: states weighed alike (no noise stated) whose final rms surface
+# distances differ by more than this are named (the inclusion with one outline displaced
+# by 0.02: 31x at the answer, E dragged to its bound; two clean outlines: within 2x)
+STATES_SPREAD = 10.0
 
 
 def check_extent(problem: InverseProblem) -> list[str]:
@@ -119,7 +123,21 @@ def target_warnings(problem: InverseProblem, best: InnerResult) -> list[str]:
                                             states.split(best.evaluation.residual)):
         state = f"state {name}: " if states.count > 1 else ""
         out += [state + line for line in _distance_warnings(misfit, spec, residual)]
-    return out
+    return out + _unequal_states(problem, best)
+
+
+def _unequal_states(problem: InverseProblem, best: InnerResult) -> list[str]:
+    """States weighed alike (no noise stated) whose surfaces fit more than STATES_SPREAD
+    times apart: the worse one's error then counts as much as the other's data."""
+    states = problem.states
+    if states.count < 2 or states.noise is not None:
+        return []
+    rms = {name: d["surface"]["rms"] for name, d in states.distances(best.evaluation.residual).items() if "surface" in d}
+    if len(rms) < 2 or min(rms.values()) <= 0 or max(rms.values()) <= STATES_SPREAD * min(rms.values()):
+        return []
+    listed = ", ".join(f"{name} {value:.3g}" for name, value in rms.items())
+    return [f"the states' final rms surface distances differ {max(rms.values()) / min(rms.values()):.0f}x ({listed}) "
+            "and they are weighed alike: state each state's target.noise to weigh them by it"]
 
 
 def _distance_warnings(misfit, spec: dict, residual: np.ndarray) -> list[str]:

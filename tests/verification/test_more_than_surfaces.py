@@ -195,8 +195,8 @@ def test_each_state_weighs_by_its_own_noise(tmp_path, two_cases):
     40.55 +- 1.37 against 39.98 +- 1.38; the pressed state's matched wall motion joins
     the shared bases). With no noise stated the two residuals give one level and
     weigh alike: the displaced outline drags E to its bound (1000, sigma 4e4; refused
-    as undetermined unless allowed). A noise stated too small is named: the state's
-    final rms distance is above 3x it."""
+    as undetermined unless allowed), and a warning says so. A noise stated too small
+    is named: the state's final rms distance is above 3x it."""
     case_a, case_b, bases = two_cases
     worse = displaced_outline(case_b, tmp_path / "worse.vtp", 0.02)
     problem = case_a["problem"]
@@ -217,6 +217,7 @@ def test_each_state_weighs_by_its_own_noise(tmp_path, two_cases):
     low, high = stated["uncertainty"]["inclusion.E"]["ci95"]
     assert abs(E["stated"] / E_TRUE - 1) < 0.03 and low < E_TRUE < high and sd["stated"] < 1.1 * sd["alone"], (E, sd)
     assert sd["pooled"] > 5 * sd["stated"], sd
+    assert any("weighed alike: state each state's target.noise" in w for w in pooled["warnings"]), pooled["warnings"]
     assert not any("does not fit" in w for w in stated["warnings"]), stated["warnings"]
     understated = estimate(tmp_path, "understated", problem, *common,  # the displaced outline claimed 10x better
                            f"states=[{state('stretched', case_a['outline'], ', noise=1e-4')}, "
