@@ -118,21 +118,20 @@ def target_warnings(problem: InverseProblem, best: InnerResult) -> list[str]:
     """Each state's final rms distance against what its target can resolve: NOISE_RATIO x
     its target.noise if given, else the target's mean edge length."""
     states = problem.states
+    distances = states.distances(best.evaluation.residual)
     out = []
-    for name, misfit, spec, residual in zip(states.names, states.misfits, states.specs,
-                                            states.split(best.evaluation.residual)):
+    for name, misfit, spec in zip(states.names, states.misfits, states.specs):
         state = f"state {name}: " if states.count > 1 else ""
-        out += [state + line for line in _distance_warnings(misfit, spec, residual)]
-    return out + _unequal_states(problem, best)
+        out += [state + line for line in _distance_warnings(misfit, spec, distances[name])]
+    return out + _unequal_states(problem, distances)
 
 
-def _unequal_states(problem: InverseProblem, best: InnerResult) -> list[str]:
+def _unequal_states(problem: InverseProblem, distances: dict[str, dict]) -> list[str]:
     """States weighed alike (no noise stated) whose surfaces fit more than STATES_SPREAD
     times apart: the worse one's error then counts as much as the other's data."""
-    states = problem.states
-    if states.count < 2 or states.noise is not None:
+    if problem.states.count < 2 or problem.states.noise is not None:
         return []
-    rms = {name: d["surface"]["rms"] for name, d in states.distances(best.evaluation.residual).items() if "surface" in d}
+    rms = {name: d["surface"]["rms"] for name, d in distances.items() if "surface" in d}
     if len(rms) < 2 or min(rms.values()) <= 0 or max(rms.values()) <= STATES_SPREAD * min(rms.values()):
         return []
     listed = ", ".join(f"{name} {value:.3g}" for name, value in rms.items())
@@ -140,10 +139,11 @@ def _unequal_states(problem: InverseProblem, best: InnerResult) -> list[str]:
             "and they are weighed alike: state each state's target.noise to weigh them by it"]
 
 
-def _distance_warnings(misfit, spec: dict, residual: np.ndarray) -> list[str]:
+def _distance_warnings(misfit, spec: dict, distances: dict) -> list[str]:
+    """One state's ``distances`` (Misfit.distances) against its target's resolution."""
     out = []
     surfaces = [s for term in misfit.terms for s in getattr(term, "surfaces", [])]
-    for kind, distance in misfit.distances(residual).items():
+    for kind, distance in distances.items():
         if spec.get("noise"):
             scale, what = NOISE_RATIO * spec["noise"], f"{NOISE_RATIO:g} x target.noise"
         elif kind == "surface" and surfaces:
