@@ -101,4 +101,4 @@ def main_(out: Path) -> None:
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=Path("out/more_than_surfaces"))
-    main_(parser.parse_args().out)
+    main_(parser.parse_args().out.resolve())  # the problem files name their targets by absolute path

@@ -131,6 +131,7 @@ OPTIMIZER = Table({
     "anchor": Key(Number(ge=0), 1e-4),
     "surrogate": Key(Boolean(), True),
     "matched_motion": Key(Choice("auto", "on", "off"), "auto"),
+    "state_noise": Key(Choice("residual", "alike"), "residual"),
     "allow_undetermined": Key(Boolean(), False),
 })
 

@@ -127,16 +127,21 @@ def target_warnings(problem: InverseProblem, best: InnerResult) -> list[str]:
 
 
 def _unequal_states(problem: InverseProblem, distances: dict[str, dict]) -> list[str]:
-    """States weighed alike (no noise stated) whose surfaces fit more than STATES_SPREAD
-    times apart: the worse one's error then counts as much as the other's data."""
+    """States with no noise stated whose surfaces fit more than STATES_SPREAD times apart:
+    weighed alike, the worse one's error counts as much as the other's data; weighed by
+    their residuals, the worse one counts little, and its target may be off."""
     if problem.states.count < 2 or problem.states.noise is not None:
         return []
     rms = {name: d["surface"]["rms"] for name, d in distances.items() if "surface" in d}
     if len(rms) < 2 or min(rms.values()) <= 0 or max(rms.values()) <= STATES_SPREAD * min(rms.values()):
         return []
     listed = ", ".join(f"{name} {value:.3g}" for name, value in rms.items())
-    return [f"the states' final rms surface distances differ {max(rms.values()) / min(rms.values()):.0f}x ({listed}) "
-            "and they are weighed alike: state each state's target.noise to weigh them by it"]
+    spread = f"the states' final rms surface distances differ {max(rms.values()) / min(rms.values()):.0f}x ({listed})"
+    if problem.states.estimated is not None:
+        return [f"{spread}: each state was weighed by its own residual's level, so the worse one counts little; "
+                "is its target off (segmentation, frame, time point)? State each target.noise if they are known"]
+    return [f"{spread} and they are weighed alike: state each state's target.noise to weigh them by it, "
+            "or let their residuals weigh them (optimizer.state_noise = \"residual\")"]
 
 
 def _distance_warnings(misfit, spec: dict, distances: dict) -> list[str]:

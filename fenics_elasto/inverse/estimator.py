@@ -41,6 +41,7 @@ from fenics_elasto.inverse.options import Options
 from fenics_elasto.inverse.outer import minimize_on_surrogate, minimize_profile, scan_grid, surrogate_scan
 from fenics_elasto.inverse.profile import Profile, SurrogateProfile
 from fenics_elasto.inverse.reduction.bases import reach_warning, with_matched_motion
+from fenics_elasto.inverse.states import EARLY_SPREAD, REWEIGH_ROUNDS, weigh_by_residuals
 from fenics_elasto.inverse.report import describe_offset, describe_uncertainty, fit_of_bases, run_warnings
 from fenics_elasto.inverse.report import record as result_record
 from fenics_elasto.inverse.surrogate import MaterialSurrogate
@@ -219,29 +220,49 @@ class Estimator:
         return np.clip(SETTLE_SHARE * post.noise_part_s, xtol, SETTLE_REACH * xtol)
 
     def run(self) -> None:
-        """Scan, check the data determine the materials, minimise Phi*, polish."""
+        """Scan, check the data determine the materials, minimise Phi*, polish; several
+        states with no noise stated are weighed by their residuals from the first solve on."""
         n = self.options.scan if len(self.params) == 1 else max(2, min(self.options.scan, 3))
         points = scan_grid(self.params, n) if self.options.scan > 1 else []  # scan = 1: the initial values only
-        xtol = self.xtol
         if self.surrogate is None:
-            points = [self.params.initial] + points
-            log.info(f"scan of {len(points)} material values (start: surface matching; inner: {self.inner_name})")
-            for theta in points:
+            log.info(f"scan of {len(points) + 1} material values (start: surface matching; inner: {self.inner_name})")
+            for i, theta in enumerate([self.params.initial] + points):
                 self.profile.solve(theta, "scan", None if self.inner_name == "gauss-newton" else self.initial_controls(theta))
-            self._check_identifiable([result.value for _, result, _ in self.profile.solved])
-            self.outer_iterations = minimize_profile(self.profile, xtol, self.options.outer_maxiter,
-                                                     smooth=not self.problem.misfit.rough())
+                if i == 0:
+                    self.weigh_states(EARLY_SPREAD)
         else:  # one factorization at the initial values; the scan on the surrogate it seeds
             log.info(f"initial values solved in full with their sensitivities, then a scan of {len(points)} "
                      f"material values on the surrogate (inner: {self.inner_name})")
             self.profile.solve(self.params.initial, "start")
             self._held.enter_context(self.profile.borrowing())  # later solves on its factors where near enough
-            start, scanned, known = surrogate_scan(self.surrogate, points)
-            self._check_identifiable([self.profile.best().value] + scanned)
-            self.outer_iterations = minimize_on_surrogate(self.profile, self.surrogate, xtol, self.options.outer_maxiter,
-                                                          start, known, smooth=not self.problem.misfit.rough(),
-                                                          settled_within=self.settled_within)
+            self.weigh_states(EARLY_SPREAD)
+        self.outer_iterations = self._outer(points, first=True)
+        for _ in range(REWEIGH_ROUNDS):
+            if not self.weigh_states():
+                break
+            self.outer_iterations += self._outer(points, first=False)
+        else:
+            log.info(f"the states' weights still moved after {REWEIGH_ROUNDS} rounds: the last ones are kept")
         self.polish()
+
+    def _outer(self, points: list, first: bool) -> int:
+        """The outer loop from the values solved so far (with the surrogate, after its scan
+        of ``points``); ``first``: check the scan says the data determine the materials."""
+        smooth = not self.problem.misfit.rough()
+        if self.surrogate is None:
+            if first:
+                self._check_identifiable([result.value for _, result, _ in self.profile.solved])
+            return minimize_profile(self.profile, self.xtol, self.options.outer_maxiter, smooth=smooth)
+        start, scanned, known = surrogate_scan(self.surrogate, points)
+        if first:
+            self._check_identifiable([self.profile.best().value] + scanned)
+        return minimize_on_surrogate(self.profile, self.surrogate, self.xtol, self.options.outer_maxiter, start, known,
+                                     smooth=smooth, settled_within=self.settled_within)
+
+    def weigh_states(self, spread: float = 1.0) -> bool:
+        """Several states with no noise stated: weighed by their residuals' levels at the
+        best value so far, where ``state_noise`` is "residual" (states.weigh_by_residuals)."""
+        return self.options.state_noise == "residual" and weigh_by_residuals(self.problem, self.profile, spread)
 
     def _check_identifiable(self, scanned: list[float]) -> None:
         check_identifiable(self.uncertainty, scanned, self.options.scan, self.options.allow_undetermined)
@@ -350,13 +371,26 @@ def _run(estimator: Estimator, warnings: list[str], extent_warnings: list[str], 
     if problem.states.count > 1:  # each state's distances and forces; ``forces`` and ``u`` are the first's
         state_forces = {name: problem.forward.reaction_forces(theta, u)
                         for name, u in zip(problem.states.names, best.evaluation.fields)}
-        record["states"] = {name: {"distances": distances, "forces": f"forces_{name}.csv", "weight": float(weight)}
-                            for (name, distances), weight in zip(problem.states.distances(best.evaluation.residual).items(),
-                                                                 problem.states.weights)}
+        record["states"] = state_records(problem.states, best.evaluation.residual, estimator.options.state_noise)
     force_covariance = _force_covariance(estimator, theta, best, post) if not interrupted else {}
     record["wall_time_s"] = round(time.perf_counter() - start, 3)
     return EstimateResult(theta, list(problem.params.labels), best.evaluation.u, forces, best.evaluation, record,
                           state_forces, force_covariance)
+
+
+def state_records(states, residual: np.ndarray, state_noise: str) -> dict[str, dict]:
+    """result.json's ``states``: each state's distances, forces file, the weight its rows
+    had, and its noise level: stated, or its residual's at the answer (the weights
+    follow it to states.REWEIGH_SETTLED), or none (weighed alike)."""
+    stated = states.noise is not None
+    levels = [spec.get("noise") for spec in states.specs] if stated else \
+        states.residual_levels(residual) if state_noise == "residual" else None
+    out = {}
+    for i, (name, distances) in enumerate(states.distances(residual).items()):
+        out[name] = {"distances": distances, "forces": f"forces_{name}.csv", "weight": float(states.weights[i]),
+                     "noise": None if levels is None else float(levels[i]),
+                     "noise_from": "stated" if stated else "residual" if levels is not None else "alike"}
+    return out
 
 
 def _force_covariance(estimator: Estimator, theta, best: InnerResult, post) -> dict[str, np.ndarray]:

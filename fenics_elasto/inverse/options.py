@@ -27,6 +27,7 @@ class Options:
     surrogate: bool = True  # reduced bases: outer loop on the reduced-basis response in the materials
     matched_motion: str = "auto"  # reduced bases: the states' matched wall motions join them (auto: no measured force)
     allow_undetermined: bool = False  # run a set-up the data cannot determine (with a warning)
+    state_noise: str = "residual"  # several states, no target.noise: weighed by their residuals' levels, or "alike"
 
     @property
     def gauss_newton_tol(self) -> float:

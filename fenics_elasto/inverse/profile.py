@@ -50,6 +50,7 @@ class Profile:
         self.surrogate = surrogate  # fed with the mode fields of every solve
         self.same_within = same_within
         self.solved: list[tuple[np.ndarray, InnerResult, str]] = []  # (s, result, stage)
+        self.earlier: list[tuple[np.ndarray, InnerResult, str]] = []  # solved on a misfit weighed otherwise
         self.linearisations: dict[int, Linearisation] = {}  # id(result) -> at that solve (Gauss-Newton)
         self.inner_iterations = 0
         self.unconverged = 0  # solves that stopped at the inner iteration limit, the interval's ("ci") aside
@@ -143,6 +144,19 @@ class Profile:
         dy = np.stack([dJk @ fit.q for dJk in dJ], axis=-1)
         return InnerResult(fit.q, evaluation, first.iterations + fit.iterations, fit.converged, fit.prior, J), dy
 
+    def start_over(self, theta, stage: str) -> InnerResult:
+        """Phi* solved anew at theta after the misfit's weights changed, every value solved
+        before set aside (they measured another functional); on an interrupt before that
+        solve ends, they stay."""
+        earlier, self.solved = self.solved, []
+        try:
+            result = self.solve(theta, stage)
+        except BaseException:
+            self.solved = earlier
+            raise
+        self.earlier += earlier
+        return result
+
     @contextmanager
     def borrowing(self):
         """Solves in the block borrow the factors of a nearby material value where they
@@ -169,9 +183,10 @@ class Profile:
         return self.params.to_theta(s)
 
     def history(self) -> list[dict]:
+        """Every solve in order, those set aside by ``start_over`` first."""
         return [{"stage": stage, "theta": list(map(float, self.params.to_theta(s))), "phi": result.value,
                  "misfit": result.evaluation.phi, "inner": result.iterations}
-                for s, result, stage in self.solved]
+                for s, result, stage in self.earlier + self.solved]
 
 
 class SurrogateProfile:

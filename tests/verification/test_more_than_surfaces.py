@@ -194,9 +194,12 @@ def test_each_state_weighs_by_its_own_noise(tmp_path, two_cases):
     interval holding the truth and its sigma the stretched state's alone (measured
     40.55 +- 1.37 against 39.98 +- 1.38; the pressed state's matched wall motion joins
     the shared bases). With no noise stated the two residuals give one level and
-    weigh alike: the displaced outline drags E to its bound (1000, sigma 4e4; refused
-    as undetermined unless allowed), and a warning says so. A noise stated too small
-    is named: the state's final rms distance is above 3x it."""
+    weigh alike (``state_noise = "alike"``): the displaced outline drags E to its bound
+    (1000, sigma 4e4; refused as undetermined unless allowed), and a warning says so.
+    By default each state's level is found from its residual instead (two rounds:
+    stretched 9e-5, pressed 0.016, near the 0.02 put in): E 40.00 +- 1.35, and a
+    warning names the spread. A noise stated too small is named: the state's final rms
+    distance is above 3x it."""
     case_a, case_b, bases = two_cases
     worse = displaced_outline(case_b, tmp_path / "worse.vtp", 0.02)
     problem = case_a["problem"]
@@ -207,17 +210,26 @@ def test_each_state_weighs_by_its_own_noise(tmp_path, two_cases):
                      f"target={{surfaces={{outline='{case_a['outline']}'}}, noise=1e-4}}")
     stated = estimate(tmp_path, "stated", problem, *common, f"states=[{state('stretched', case_a['outline'], ', noise=1e-4')}, "
                       f"{state('pressed', worse, ', noise=0.02')}]")
+    unstated = f"states=[{state('stretched', case_a['outline'])}, {state('pressed', worse)}]"
     pooled = estimate(tmp_path, "pooled", problem, *common, "optimizer.allow_undetermined=true",
-                      f"states=[{state('stretched', case_a['outline'])}, {state('pressed', worse)}]")
-    E = {name: r["materials"]["inclusion"]["E"] for name, r in (("alone", alone), ("stated", stated), ("pooled", pooled))}
-    sd = {name: r["uncertainty"]["inclusion.E"]["std"] for name, r in (("alone", alone), ("stated", stated), ("pooled", pooled))}
-    print(E, sd, stated["uncertainty"]["noise_std"], pooled["uncertainty"]["noise_std"])
+                      "optimizer.state_noise='alike'", unstated)
+    found = estimate(tmp_path, "found", problem, *common, unstated)
+    runs = (("alone", alone), ("stated", stated), ("pooled", pooled), ("found", found))
+    E = {name: r["materials"]["inclusion"]["E"] for name, r in runs}
+    sd = {name: r["uncertainty"]["inclusion.E"]["std"] for name, r in runs}
+    print(E, sd, stated["uncertainty"]["noise_std"], pooled["uncertainty"]["noise_std"], found["states"])
     assert [stated["states"][n]["weight"] for n in ("stretched", "pressed")] == [1.0, pytest.approx(1 / 40_000)]
     assert stated["uncertainty"]["noise"] == "given" and stated["uncertainty"]["noise_std"] == 1e-4
     low, high = stated["uncertainty"]["inclusion.E"]["ci95"]
     assert abs(E["stated"] / E_TRUE - 1) < 0.03 and low < E_TRUE < high and sd["stated"] < 1.1 * sd["alone"], (E, sd)
     assert sd["pooled"] > 5 * sd["stated"], sd
     assert any("weighed alike: state each state's target.noise" in w for w in pooled["warnings"]), pooled["warnings"]
+    low, high = found["uncertainty"]["inclusion.E"]["ci95"]  # the levels found from the residuals
+    assert abs(E["found"] / E_TRUE - 1) < 0.03 and low < E_TRUE < high and sd["found"] < 1.1 * sd["alone"], (E, sd)
+    levels = {n: found["states"][n]["noise"] for n in ("stretched", "pressed")}
+    assert found["states"]["pressed"]["noise_from"] == "residual" and 0.01 < levels["pressed"] < 0.03, levels
+    assert levels["stretched"] < 1e-3 and found["states"]["pressed"]["weight"] < 1e-3, found["states"]
+    assert any("weighed by its own residual's level" in w for w in found["warnings"]), found["warnings"]
     assert not any("does not fit" in w for w in stated["warnings"]), stated["warnings"]
     understated = estimate(tmp_path, "understated", problem, *common,  # the displaced outline claimed 10x better
                            f"states=[{state('stretched', case_a['outline'], ', noise=1e-4')}, "

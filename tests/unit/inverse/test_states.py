@@ -1,11 +1,12 @@
 """Several states' noise (inverse/states.py): each state's rows weigh by the noise its
-target states, relative to the smallest; one stated for some states only is refused."""
+target states, relative to the smallest, or by the level its residual shows where none
+is stated; one stated for some states only is refused."""
 
 import numpy as np
 import pytest
 
 from fenics_elasto.inverse.misfit import Misfit, PointTerm, stacked
-from fenics_elasto.inverse.states import States
+from fenics_elasto.inverse.states import LEVEL_FLOOR, States
 from fenics_elasto.util.errors import UserError
 
 
@@ -32,3 +33,18 @@ def test_without_stated_noise_the_states_weigh_alike():
 def test_noise_stated_for_some_states_only_is_refused():
     with pytest.raises(UserError, match=r"not for \['s1'\]"):
         _ = states(0.01, None).weights
+
+
+def test_without_stated_noise_each_state_has_its_residual_level():
+    """The level is the rms of a state's own rows (its misfit's weights: here a landmark
+    weight of 4 doubles it), floored at LEVEL_FLOOR x the largest; the weights follow."""
+    s = states(None, None, None)
+    s.misfits[1].weights[:] = 4.0
+    residual = np.zeros((6, 2))
+    residual[0:2, 0] = 0.01  # state 0: 0.01 in x at both rows
+    residual[2:4] = [[0.03, 0.04], [0.0, 0.05]]  # state 1: 0.05 at both rows, weighed 4x
+    levels = s.residual_levels(residual)  # state 2 fits exactly
+    assert np.allclose(levels, [0.01, 0.1, LEVEL_FLOOR * 0.1])
+    s.estimated = levels
+    assert np.allclose(s.weights, (LEVEL_FLOOR * 0.1 / levels) ** 2)
+    assert s.weights[2] == 1.0
