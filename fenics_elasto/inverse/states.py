@@ -13,7 +13,7 @@ the negative log-likelihood of them all and the posterior's noise is sigma_ref, 
 A noise stated for some states and not for others is refused: an estimated level for
 the rest would have to come from residuals already weighed by the stated ones.
 Without any, each state's level is estimated from its own residual after a fit and the
-fit is made again with the weights they give (``residual_weights``; maximum likelihood
+fit is made again with the weights they give (``residual_levels``; maximum likelihood
 with each state's variance unknown, by reweighing until the weights settle:
 weigh_by_residuals). Weighed alike instead (``[optimizer] state_noise = "alike"``),
 the inclusion with one outline displaced by a smooth error of 0.02 put E at its bound;
@@ -30,7 +30,7 @@ import numpy as np
 from fenics_elasto.util.errors import require
 from fenics_elasto.util.logs import log
 
-# residual_weights: a state's estimated level is at least this share of the largest
+# residual_levels: a state's estimated level is at least this share of the largest
 # (a state fitted to round-off would otherwise weigh without bound) and at least its
 # target's own roughness (a surface cannot be known better than it is drawn).
 LEVEL_FLOOR = 1e-3
@@ -53,7 +53,7 @@ class States:
     names: list[str]
     misfits: list
     specs: list[dict]
-    estimated: np.ndarray | None = None  # each state's noise level from its residual (residual_weights), if set
+    estimated: np.ndarray | None = None  # each state's noise level from its residual (residual_levels), if set
 
     @property
     def count(self) -> int:
