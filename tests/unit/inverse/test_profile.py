@@ -729,3 +729,24 @@ def test_gauss_newton_reaches_an_independent_optimisers_minimum_on_a_faceted_tar
                          options={"maxiter": 20000, "maxcor": 50, "ftol": 1e-15, "gtol": 1e-13}).fun
     assert fit.converged and fit.iterations <= 40, fit.iterations
     assert fit.value <= reference * (1 + 1e-9), (fit.value, reference)
+
+
+def test_starting_over_keeps_the_earlier_values_if_interrupted(letter, monkeypatch):
+    """Profile.start_over (the states' reweighing): the values solved before are set aside
+    once the new one is solved, and stay the profile's own where that solve is
+    interrupted -- an interrupted estimate still writes the best it had."""
+    profile = profile_of(letter)
+    theta = profile.params.initial
+    first = profile.solve(theta, "scan")
+    new = profile.start_over(theta, "weigh")  # solved anew, not the value known at theta
+    assert new is not first and [r for _, r, _ in profile.solved] == [new]
+    assert [r for _, r, _ in profile.earlier] == [first]
+    assert [h["stage"] for h in profile.history()] == ["scan", "weigh"]
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(profile, "solve", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        profile.start_over(theta, "weigh")
+    assert [r for _, r, _ in profile.solved] == [new] and len(profile.earlier) == 1

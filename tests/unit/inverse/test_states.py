@@ -48,3 +48,33 @@ def test_without_stated_noise_each_state_has_its_residual_level():
     s.estimated = levels
     assert np.allclose(s.weights, (LEVEL_FLOOR * 0.1 / levels) ** 2)
     assert s.weights[2] == 1.0
+
+
+def test_reweighing_states_is_undone_if_interrupted():
+    """weigh_by_residuals: the stacked misfit's rows take each state's weight, and an
+    interrupt while Phi* is solved again leaves the weights the best value was solved with."""
+    from types import SimpleNamespace
+
+    from fenics_elasto.inverse.states import weigh_by_residuals
+
+    s = states(None, None)
+    misfit = stacked(s.misfits, s.weights)
+    residual = np.zeros((4, 2))
+    residual[0:2, 0], residual[2:4, 0] = 0.01, 0.1
+    best = SimpleNamespace(evaluation=SimpleNamespace(residual=residual))
+
+    def interrupted(theta, stage):
+        assert np.allclose(misfit.weights, [1.0, 1.0, 0.01, 0.01])  # weighed while it solves
+        raise KeyboardInterrupt
+
+    profile = SimpleNamespace(best=lambda: best, best_theta=lambda: np.ones(1), start_over=interrupted)
+    problem = SimpleNamespace(states=s, misfit=misfit)
+    with pytest.raises(KeyboardInterrupt):
+        weigh_by_residuals(problem, profile)
+    assert s.estimated is None and misfit.weights.tolist() == [1.0] * 4
+    profile.start_over = lambda theta, stage: None
+    assert weigh_by_residuals(problem, profile) and np.allclose(s.weights, [1.0, 0.01])
+    assert not weigh_by_residuals(problem, profile)  # settled: the same residual, the same weights
+    fresh = states(None, None)  # levels 10x apart: before the outer loop (EARLY_SPREAD) they are left alike
+    assert not weigh_by_residuals(SimpleNamespace(states=fresh, misfit=stacked(fresh.misfits)), profile, spread=20.0)
+    assert fresh.estimated is None
