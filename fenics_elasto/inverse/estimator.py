@@ -44,7 +44,7 @@ from fenics_elasto.inverse.reduction.bases import reach_warning, with_matched_mo
 from fenics_elasto.inverse.states import EARLY_SPREAD, REWEIGH_ROUNDS, weigh_by_residuals
 from fenics_elasto.inverse.report import describe_offset, describe_uncertainty, fit_of_bases, run_warnings
 from fenics_elasto.inverse.report import record as result_record
-from fenics_elasto.inverse.surrogate import MaterialSurrogate
+from fenics_elasto.inverse.surrogate import MaterialSurrogate, release
 from fenics_elasto.inverse.uncertainty.answer import AnswerUncertainty
 from fenics_elasto.inverse.uncertainty.identifiability import check_identifiable
 from fenics_elasto.inverse.uncertainty.parts import add_model_error, largest_part
@@ -347,6 +347,8 @@ def _run(estimator: Estimator, warnings: list[str], extent_warnings: list[str], 
     if post is not None and not interrupted:
         estimator.uncertainty.profile_likelihood_interval(post)
     fit = fit_of_bases(estimator, theta, best, post, interrupted)
+    if estimator.profile.surrogate is not None:  # its last use was the half-rank check (fit_of_bases)
+        release(estimator.profile.surrogate)  # the degree-3 matrix then reuses its memory
     if post is not None and not interrupted:
         add_model_error(problem, post, theta, best.evaluation, estimator.profile.linearisation(best), fit)
     uncertainty_seconds = time.perf_counter() - clock
