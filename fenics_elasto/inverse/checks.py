@@ -75,9 +75,10 @@ def _nodes_in(problem, nodes, other) -> np.ndarray:
 EXTENT_RATIO = 1.5  # a target this much larger or smaller than the surface it matches is suspect
 UNITS_RATIO = 3.0  # ... and this much larger is never right (mm against cm is 10x): refused
 NOISE_RATIO = 3.0  # a final rms distance above this x [target] noise fits badly
-# target_warnings: states weighed alike (no noise stated) whose final rms surface
-# distances differ by more than this are named (the inclusion with one outline displaced
-# by 0.02: 31x at the answer, E dragged to its bound; two clean outlines: within 2x)
+# target_warnings: states with no noise stated whose final rms surface distances differ
+# by more than this are named (the inclusion with one outline displaced by 0.02: 31x
+# weighed alike, E dragged to its bound; 186x weighed by their residuals, E within 0.1 %;
+# two clean outlines: within 2x)
 STATES_SPREAD = 10.0
 
 
