@@ -176,6 +176,26 @@ def test_two_states_narrow_the_interval(tmp_path, two_cases):
         assert np.linalg.norm(total - truth) < 0.05 * np.linalg.norm(truth), (name, total, truth)
 
 
+
+def test_states_weighed_by_their_residuals_in_the_full_force_space(tmp_path, two_cases):
+    """No bases, no noise stated (the full-space outer loop, weighed after its scan):
+    the stretched state's residual is the more structured (levels 9.6e-5 and 4.4e-5 at
+    the answer), so it weighs ~0.23 and the pair's sigma is 1.18 against 2.05 weighed
+    alike and 1.81 for the pressed state alone; E 39.83 against 39.12 alike (truth 40)."""
+    case_a, case_b, _ = two_cases
+    outline = lambda case: f"{{surfaces={{outline='{case['outline']}'}}}}"  # noqa: E731
+    pair = f"states=[{{name='stretched', target={outline(case_a)}}}, {{name='pressed', target={outline(case_b)}}}]"
+    common = ["boundary.matched=['outline']", pair]
+    found = estimate(tmp_path, "found", case_a["problem"], *common)
+    alike = estimate(tmp_path, "alike", case_a["problem"], *common, "optimizer.state_noise='alike'")
+    E = {name: r["materials"]["inclusion"]["E"] for name, r in (("found", found), ("alike", alike))}
+    sd = {name: r["uncertainty"]["inclusion.E"]["std"] for name, r in (("found", found), ("alike", alike))}
+    print(E, sd, found["states"])
+    low, high = found["uncertainty"]["inclusion.E"]["ci95"]
+    assert low < E_TRUE < high and abs(E["found"] / E_TRUE - 1) < 0.01 and sd["found"] < sd["alike"] / 1.5, (E, sd)
+    assert found["states"]["stretched"]["weight"] < 0.5 and found["states"]["pressed"]["weight"] == 1.0, found["states"]
+    assert "weigh" in [h["stage"] for h in found["history"]] and alike["states"]["pressed"]["noise_from"] == "alike"
+
 def displaced_outline(case, path, std: float):
     """The case's target outline moved by a smooth error of ``std`` (a worse segmentation)."""
     import pyvista as pv
