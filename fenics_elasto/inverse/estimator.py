@@ -384,14 +384,15 @@ def state_records(states, residual: np.ndarray, state_noise: str) -> dict[str, d
     """result.json's ``states``: each state's distances, forces file, the weight its rows
     had, and its noise level: stated, or its residual's at the answer (the weights
     follow it to states.REWEIGH_SETTLED), or none (weighed alike)."""
-    stated = states.noise is not None
-    levels = [spec.get("noise") for spec in states.specs] if stated else \
-        states.residual_levels(residual) if state_noise == "residual" else None
+    levels, source = states.stated_noise(), "stated"
+    if levels is None and state_noise == "residual":
+        levels, source = list(states.residual_levels(residual)), "residual"
+    elif levels is None:
+        source = "alike"
     out = {}
     for i, (name, distances) in enumerate(states.distances(residual).items()):
         out[name] = {"distances": distances, "forces": f"forces_{name}.csv", "weight": float(states.weights[i]),
-                     "noise": None if levels is None else float(levels[i]),
-                     "noise_from": "stated" if stated else "residual" if levels is not None else "alike"}
+                     "noise": None if levels is None else float(levels[i]), "noise_from": source}
     return out
 
 

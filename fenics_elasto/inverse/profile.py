@@ -145,9 +145,8 @@ class Profile:
         return InnerResult(fit.q, evaluation, first.iterations + fit.iterations, fit.converged, fit.prior, J), dy
 
     def start_over(self, theta, stage: str) -> InnerResult:
-        """Phi* solved anew at theta after the misfit's weights changed, every value solved
-        before set aside (they measured another functional); on an interrupt before that
-        solve ends, they stay."""
+        """Phi* solved anew at theta after the misfit's weights changed, the values before set
+        aside (another functional's); on an interrupt before that solve ends, they stay."""
         earlier, self.solved = self.solved, []
         try:
             result = self.solve(theta, stage)
@@ -182,11 +181,14 @@ class Profile:
         s, _, _ = min(self.solved, key=lambda item: item[1].value)
         return self.params.to_theta(s)
 
+    @property
+    def every_solve(self) -> list[tuple[np.ndarray, InnerResult, str]]:  # in order, start_over's set aside first
+        return self.earlier + self.solved
+
     def history(self) -> list[dict]:
-        """Every solve in order, those set aside by ``start_over`` first."""
         return [{"stage": stage, "theta": list(map(float, self.params.to_theta(s))), "phi": result.value,
                  "misfit": result.evaluation.phi, "inner": result.iterations}
-                for s, result, stage in self.earlier + self.solved]
+                for s, result, stage in self.every_solve]
 
 
 class SurrogateProfile:

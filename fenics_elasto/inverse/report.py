@@ -173,8 +173,7 @@ RANK_REACH = 8.0  # ... searched for within this many stds of the answer: far en
 def record(estimator: Estimator, theta, best: InnerResult, phi_undeformed, warnings, interrupted, start) -> dict:
     problem, profile = estimator.problem, estimator.profile
     E, nu = problem.params.materials(theta)
-    first = (profile.earlier + profile.solved)[:1]
-    initial = first[0][1].value if first else None
+    initial = profile.every_solve[0][1].value if profile.every_solve else None
     return {
         "materials": {m.name: {"E": float(E[i]), "nu": float(nu[i])} for i, m in enumerate(problem.scene.materials)},
         "estimated": list(problem.params.labels),
@@ -183,7 +182,7 @@ def record(estimator: Estimator, theta, best: InnerResult, phi_undeformed, warni
         "surface_distance": next(iter(problem.distances(best.evaluation.residual).values())),  # the first kind of data
         "distances": problem.distances(best.evaluation.residual),
         "iterations": {"outer": estimator.outer_iterations, "inner": profile.inner_iterations,
-                       "evaluations": len(profile.earlier) + len(profile.solved),
+                       "evaluations": len(profile.every_solve),
                        "surrogate_evaluations": estimator.surrogate.evaluations if estimator.surrogate else 0},
         "factorizations": problem.model.factorizations,
         "solves": {"forward": problem.forward.forward_solves, "adjoint": problem.forward.adjoint_solves},

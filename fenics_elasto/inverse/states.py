@@ -63,14 +63,14 @@ class States:
     def noise(self) -> float | None:
         """The noise std Phi is measured in: the smallest stated noise (the one state's
         own), or None where no state states one (estimated from the residual)."""
-        stated = self._stated_noise()
+        stated = self.stated_noise()
         return None if stated is None else min(stated)
 
     @property
     def weights(self) -> np.ndarray:
         """Each state's rows' weight, (noise / its noise)^2 with the stated noises, else the
         estimated levels (``estimated``); 1 with neither."""
-        stated = self._stated_noise()
+        stated = self.stated_noise()
         levels = self.estimated if stated is None else np.asarray(stated)
         return np.ones(self.count) if levels is None else (np.min(levels) / levels) ** 2
 
@@ -92,7 +92,8 @@ class States:
                                for misfit, rows in zip(self.misfits, self.split(residual))])
         return np.maximum(levels, LEVEL_FLOOR * levels.max())
 
-    def _stated_noise(self) -> list[float] | None:
+    def stated_noise(self) -> list[float] | None:
+        """Each state's stated target.noise, or None where none is stated."""
         given = [spec.get("noise") for spec in self.specs]
         if all(g is None for g in given):
             return None
