@@ -115,19 +115,20 @@ def _extent_warnings(problem: InverseProblem, misfit, spec: dict) -> list[str]:
     return out
 
 
-def target_warnings(problem: InverseProblem, best: InnerResult) -> list[str]:
+def target_warnings(problem: InverseProblem, best: InnerResult, state_noise: str = "residual") -> list[str]:
     """Each state's final rms distance against what its target can resolve: NOISE_RATIO x
-    its target.noise if given, else the target's mean edge length."""
+    its target.noise if given, else the target's mean edge length; ``state_noise``: how
+    states with no noise stated were weighed ([optimizer] state_noise)."""
     states = problem.states
     distances = states.distances(best.evaluation.residual)
     out = []
     for name, misfit, spec in zip(states.names, states.misfits, states.specs):
         state = f"state {name}: " if states.count > 1 else ""
         out += [state + line for line in _distance_warnings(misfit, spec, distances[name])]
-    return out + _unequal_states(problem, distances)
+    return out + _unequal_states(problem, distances, state_noise)
 
 
-def _unequal_states(problem: InverseProblem, distances: dict[str, dict]) -> list[str]:
+def _unequal_states(problem: InverseProblem, distances: dict[str, dict], state_noise: str) -> list[str]:
     """States with no noise stated whose surfaces fit more than STATES_SPREAD times apart:
     weighed alike, the worse one's error counts as much as the other's data; weighed by
     their residuals, the worse one counts little, and its target may be off."""
@@ -138,7 +139,7 @@ def _unequal_states(problem: InverseProblem, distances: dict[str, dict]) -> list
         return []
     listed = ", ".join(f"{name} {value:.3g}" for name, value in rms.items())
     spread = f"the states' final rms surface distances differ {max(rms.values()) / min(rms.values()):.0f}x ({listed})"
-    if problem.states.estimated is not None:
+    if state_noise == "residual":  # weighed by their levels, or found within REWEIGH_SETTLED of alike
         return [f"{spread}: each state was weighed by its own residual's level, so the worse one counts little; "
                 "is its target off (segmentation, frame, time point)? State each target.noise if they are known"]
     return [f"{spread} and they are weighed alike: state each state's target.noise to weigh them by it, "

@@ -353,7 +353,7 @@ def _run(estimator: Estimator, warnings: list[str], extent_warnings: list[str], 
         add_model_error(problem, post, theta, best.evaluation, estimator.profile.linearisation(best), fit)
     uncertainty_seconds = time.perf_counter() - clock
     warnings = (warnings + estimator.uncertainty.warnings + run_warnings(estimator, theta, interrupted, fit, post)
-                + extent_warnings + target_warnings(problem, best))
+                + extent_warnings + target_warnings(problem, best, estimator.options.state_noise))
     for text in warnings:
         log.warning(text)
     record = result_record(estimator, theta, best, phi_undeformed, warnings, interrupted, start)
