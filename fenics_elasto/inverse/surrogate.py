@@ -25,6 +25,7 @@ from __future__ import annotations
 import numpy as np
 from mpi4py import MPI
 
+from fenics_elasto.model.dofs import times_block
 from fenics_elasto.model.stiffness import combine
 from fenics_elasto.inverse.objective import InverseProblem
 from fenics_elasto.model.responses import lift
@@ -115,7 +116,7 @@ class MaterialSurrogate:
         self._own = [M for M, w in zip(self.terms, weights) if np.count_nonzero(w) > 1]  # the sums made here
         modes = lift(self.forward, basis)
         self.G = modes.getDenseArray().copy()
-        self.MG = [problem.model.dofs.multiply(M, self.G) for M in self.terms]
+        self.MG = [times_block(M, self.G) for M in self.terms]
         modes.destroy()
         self.free = np.ones(len(self.G), bool)
         self.free[self.forward.clamped_boundary] = False
@@ -171,7 +172,7 @@ class MaterialSurrogate:
         s2, U = np.linalg.eigh(self._dot(Y, Y))
         keep = s2 > (1e-10 * scale) ** 2
         Q = Y @ (U[:, keep] / np.sqrt(s2[keep]))
-        MQ = [self.problem.model.dofs.multiply(M, Q) for M in self.terms]
+        MQ = [times_block(M, Q) for M in self.terms]
         for j in range(len(self.terms)):
             cross = self._dot_V(MQ[j])
             self.VMV[j] = np.block([[self.VMV[j], cross], [cross.T, self._dot(Q, MQ[j])]])

@@ -13,6 +13,7 @@ from __future__ import annotations
 import numpy as np
 from petsc4py import PETSc
 
+from fenics_elasto.model.dofs import times_block
 from fenics_elasto.model.forward import BoundaryForward
 
 
@@ -35,7 +36,7 @@ def response_sensitivities(forward: BoundaryForward, theta, X: np.ndarray, order
         block = forward.model.dofs.dense(X.shape[1])
         rhs = block.getDenseArray()
         for M, Y in products:
-            rhs -= forward.model.dofs.multiply(M, Y)
+            rhs -= times_block(M, Y)
         rhs[forward.clamped_boundary] = 0.0
         out = forward.model.dofs.dense(X.shape[1])
         factor.solve_many(block, out)
@@ -73,9 +74,9 @@ def response_block(forward: BoundaryForward, theta, basis: np.ndarray | None = N
     c = forward.coefficients(theta)[0]
     G = lift(forward, basis)
     K = forward.model.stiffness.matrix(c)
-    rhs = K.matMult(G)
+    rhs = forward.model.dofs.dense(G.getSize()[1])
     block = rhs.getDenseArray()
-    block *= -1.0
+    block[:] = -times_block(K, G.getDenseArray())
     block[forward.clamped_boundary] = G.getDenseArray()[forward.clamped_boundary]
     X = forward.model.dofs.dense(G.getSize()[1])
     with forward.model.solver(c, forward.clamped_boundary, forward.borrows and G.getSize()[1] == 1, rtol) as factor:

@@ -67,6 +67,7 @@ import numpy as np
 from mpi4py import MPI
 from petsc4py import PETSc
 
+from fenics_elasto.model.dofs import times_block
 from fenics_elasto.util.budget import available_memory
 from fenics_elasto.util.errors import UserError
 
@@ -425,9 +426,8 @@ def _residual(K: PETSc.Mat, B, X):
         K.mult(X, R)
         R.aypx(-1.0, B)
         return R
-    R = K.matMult(X)
-    R.scale(-1.0)
-    R.axpy(1.0, B)
+    R = B.duplicate(copy=True)
+    R.getDenseArray()[:] -= times_block(K, X.getDenseArray())
     return R
 
 
@@ -737,7 +737,7 @@ class WarmStart:
         if self.S is None:
             return np.zeros_like(B)
         if self.KS is None or self.state != _state(K):
-            self.KS, self.state = _product(K, self.S), _state(K)
+            self.KS, self.state = times_block(K, self.S), _state(K)
         G = self.comm.allreduce(self.S.T @ self.KS, op=MPI.SUM)
         lam, V = np.linalg.eigh(0.5 * (G + G.T))
         keep = lam > 1e-12 * max(lam.max(), 0.0)
@@ -768,14 +768,3 @@ def _state(K: PETSc.Mat) -> tuple:
     return (K.handle, K.stateGet())
 
 
-def _product(K: PETSc.Mat, S: np.ndarray) -> np.ndarray:
-    """K S for owned-row columns S, through a distributed dense matrix."""
-    D = PETSc.Mat().createDense(((S.shape[0], PETSc.DETERMINE), (PETSc.DECIDE, S.shape[1])), comm=K.getComm())
-    D.setUp()
-    D.getDenseArray()[:] = S
-    D.assemble()
-    P = K.matMult(D)
-    out = P.getDenseArray().copy()
-    for M in (D, P):
-        M.destroy()
-    return out

@@ -36,6 +36,7 @@ import dolfinx
 import dolfinx.fem.petsc
 from dolfinx import fem
 
+from fenics_elasto.model.dofs import times_block
 from fenics_elasto.util.errors import require
 from fenics_elasto.geometry.fields import SmoothFields
 from fenics_elasto.util.logs import log
@@ -83,12 +84,8 @@ class WallLoads:
 
     def block(self, matrix: PETSc.Mat, columns: np.ndarray, model) -> PETSc.Mat:
         """matrix @ columns (owned rows of the trial space) as a dense Mat in V's layout."""
-        C = PETSc.Mat().createDense(((len(columns), PETSc.DETERMINE), (PETSc.DECIDE, columns.shape[1])), comm=model.dofs.comm)
-        C.setUp()
-        C.getDenseArray()[:] = columns
-        C.assemble()
-        out = matrix.matMult(C)
-        C.destroy()
+        out = model.dofs.dense(columns.shape[1])
+        out.getDenseArray()[:] = times_block(matrix, columns)
         return out
 
 
