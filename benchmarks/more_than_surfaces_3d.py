@@ -9,6 +9,8 @@ adds one kind of data:
 - 4 fiducials inside the prostate (exact);
 - the "emptied" state's organ surfaces (bladder emptied and sunk, rectum collapsed),
   and that state alone (not an addition: the case the bases are farthest from);
+- the "probe" state's organ surfaces (the rectum widened 40 % towards the prostate, as by
+  an endorectal balloon), and that state alone;
 - the rectum wall's total force, scikit-fem's, stated with 2 % noise, every E estimated
   (the tissue started at half its truth);
 - a displacement field: 20,000 vertices of the truth's mesh with their displacement and
@@ -49,7 +51,7 @@ def noisy_field(path: Path, out: Path, share: float) -> tuple[Path, float]:
     return out, std
 
 
-def rows(filled: dict, emptied: dict, out: Path) -> dict[str, list[str]]:
+def rows(filled: dict, emptied: dict, probe: dict, out: Path) -> dict[str, list[str]]:
     surfaces = lambda files: "surfaces={" + ", ".join(  # noqa: E731
         f"{g}='{files[g]}'" for g in ("bladder", "prostate_surface", "rectum")) + "}"
     force = np.array(json.loads(Path(filled["forces"]).read_text())["rectum"])
@@ -61,6 +63,9 @@ def rows(filled: dict, emptied: dict, out: Path) -> dict[str, list[str]]:
         "+ a second state": [f"states=[{{name='filled', target={{{surfaces(filled)}}}}}, "
                              f"{{name='emptied', target={{{surfaces(emptied)}}}}}]"],
         "the second state alone": [f"target={{{surfaces(emptied)}}}"],
+        "+ a probe state": [f"states=[{{name='filled', target={{{surfaces(filled)}}}}}, "
+                            f"{{name='probe', target={{{surfaces(probe)}}}}}]"],
+        "the probe state alone": [f"target={{{surfaces(probe)}}}"],
         "+ a force (2 %)": [f"target={{{surfaces(filled)}}}",
                             "materials.tissue.E={estimate=true, initial=5.0, bounds=[0.5, 100.0]}",
                             f"boundary.measured_force.rectum={{value={force.tolist()}, noise={noise}}}"],
@@ -76,8 +81,9 @@ def run(out: Path, extra: list[str], only: list[str]) -> None:
         assert main(["train", str(problem), "--synthetic", "120", "--rank", "80", "--out", str(bases)]) == 0
     filled = ind.phantom(out / "truth", TRUTH, field=20000)
     emptied = ind.phantom(out / "truth", TRUTH, state="emptied")
+    probe = ind.phantom(out / "truth", TRUTH, state="probe")
     table, base = [], None
-    for name, sets in rows(filled, emptied, out).items():
+    for name, sets in rows(filled, emptied, probe, out).items():
         if only and name not in only:
             continue
         folder = out / name.replace(" ", "_").replace("+", "plus").replace("(", "").replace(")", "").replace("%", "pc")

@@ -813,9 +813,12 @@ def _ripple(d: np.ndarray, amplitude: float, wavelength: float = 6.0) -> np.ndar
 
 # The walls' motion per state: (bladder inflation, its shift; rectum inflation, its shift).
 # "filled": the bladder filled and the rectum distended; "emptied": the bladder emptied
-# and sunk, the rectum collapsed and pulled back -- another load on the same body.
+# and sunk, the rectum collapsed and pulled back -- another load on the same body;
+# "probe": the bladder at rest, the rectum widened 40 % and pushed towards the prostate,
+# as by an endorectal coil's balloon (a load that presses on the prostate itself).
 PHANTOM_STATES = {"filled": (0.1, (0.05, 0.0, 0.15), 0.15, (0.0, -0.1, 0.05)),
-                  "emptied": (-0.08, (-0.05, 0.05, -0.12), -0.1, (0.02, 0.08, -0.04))}
+                  "emptied": (-0.08, (-0.05, 0.05, -0.12), -0.1, (0.02, 0.08, -0.04)),
+                  "probe": (0.0, (0.0, 0.0, 0.0), 0.4, (0.0, -0.15, 0.0))}
 
 
 def phantom_motions(organs: dict, ripple: float = 0.15, state: str = "filled") -> dict:
