@@ -15,31 +15,27 @@ from dolfinx import fem
 from fenics_elasto.model.scene import Scene
 
 
-# times_block: columns per sparse-dense product. The whole block at once (the
-# surrogate's first space at rank 240 on the default phantom: ~700 columns of 116k rows,
-# 0.65 GB) made PETSc hold two more copies of it: the start's peak 9.3 GB -> 8.0 GB in
-# slices, E the same to the bit. (scipy's product is also a little faster in slices:
-# 241 columns of the phantom's K in 0.49 s against 0.62 s at once.)
+# times_block across ranks: columns per sparse-dense product. The whole block at once
+# (the surrogate's first space at rank 240 on the default phantom: ~700 columns of 116k
+# rows, 0.65 GB) made PETSc hold two more copies of it: the start's peak 9.3 GB -> 8.0 GB
+# in slices, E the same to the bit.
 MULTIPLY_COLUMNS = 64
 
 
 def times_block(M: PETSc.Mat, Y: np.ndarray) -> np.ndarray:
     """M Y for columns Y on this rank's rows of M's column layout (numpy), as numpy on
-    M's owned rows, MULTIPLY_COLUMNS at a time. On one rank through scipy's CSR product,
-    which reads M once for all the columns of a slice; PETSc's sparse-dense product
-    reads it once per column (the phantom's K, 116k DOFs and 9.6M entries, times 241
-    columns: 0.49 s against 1.89 s). Across ranks through PETSc's distributed dense
-    matrices, which bring in the ghost rows."""
+    M's owned rows. On one rank through scipy's CSR product, which reads M once for all
+    the columns and writes only the product; PETSc's sparse-dense product reads M once
+    per column (the phantom's K, 116k DOFs and 9.6M entries, times 241 columns: 0.6 s
+    against 1.9 s). Across ranks through PETSc's distributed dense matrices, which bring
+    in the ghost rows, MULTIPLY_COLUMNS at a time."""
     (rows, columns), comm = M.getLocalSize(), M.getComm()
     if comm.getSize() == 1:
         indptr, indices, values = M.getValuesCSR()
-        matrix = csr_matrix((values, indices, indptr), shape=(rows, columns))
+        return csr_matrix((values, indices, indptr), shape=(rows, columns)) @ np.ascontiguousarray(Y)
     out = np.empty((rows, Y.shape[1]))
     for start in range(0, Y.shape[1], MULTIPLY_COLUMNS):
         part = slice(start, min(start + MULTIPLY_COLUMNS, Y.shape[1]))
-        if comm.getSize() == 1:
-            out[:, part] = matrix @ np.ascontiguousarray(Y[:, part])
-            continue
         D = PETSc.Mat().createDense(((columns, PETSc.DETERMINE), (PETSc.DECIDE, part.stop - part.start)), comm=comm)
         D.setUp()
         D.getDenseArray()[:] = Y[:, part]

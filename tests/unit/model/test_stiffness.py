@@ -62,8 +62,8 @@ def test_new_materials_reuse_the_compiled_form(phantom_p1):
 
 
 def test_block_products_in_slices_equal_the_matrix_product(phantom_p1):
-    """times_block works MULTIPLY_COLUMNS columns at a time (memory), through scipy's CSR
-    product on one rank: over a block wider than that, its product is PETSc's own
+    """times_block (scipy's CSR product on one rank, MULTIPLY_COLUMNS columns at a time
+    across ranks): over a block wider than that, its product is PETSc's own
     matrix-vector product, column for column."""
     from fenics_elasto.model.dofs import MULTIPLY_COLUMNS, times_block
 
