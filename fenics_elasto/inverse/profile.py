@@ -218,10 +218,11 @@ class SurrogateProfile:
         values = [fit.value for fit in fits]
         return float(max(values) - min(values)), fits[int(np.argmin(values))].q
 
-    def value_and_gradient(self, s) -> tuple[float, np.ndarray]:
+    def value_and_gradient(self, s, tol: float | None = None) -> tuple[float, np.ndarray]:
+        """Phi* and dPhi*/ds at s, the inner fit to ``tol`` (the inner solver's by default)."""
         theta = self.params.to_theta(s)
         J, dJ = self.response(theta)
-        fit = self.fit_inner.fit(J)
+        fit = self.fit_inner.fit(J, tol=tol)
         self.evaluations += 1
         return fit.value, envelope_gradient(self.fit_inner.misfit, fit, dJ) * self.params.dtheta_ds(theta)
 
