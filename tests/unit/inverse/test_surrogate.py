@@ -264,3 +264,44 @@ def test_one_factorization_gives_the_answer_of_two(tmp_path, monkeypatch):
     ua, ub = a["uncertainty"]["letter.nu"], b["uncertainty"]["letter.nu"]
     assert abs(ua["std"] - ub["std"]) < 1e-6 * ub["std"]
     assert np.allclose(ua["ci95"], ub["ci95"], rtol=1e-6, atol=0)
+
+
+def test_the_scan_fits_loosely_and_the_answer_stays(tmp_path, monkeypatch):
+    """Letter A, nu through random-plus-answer bases: the surrogate scan's inner fits stop
+    at inner_tol (SCAN_LOOSER x the Gauss-Newton tolerance), in fewer iterations. They
+    place the bracket only: the answer, its sigma and Phi* are those of a scan fitted as
+    tightly as the optimum's fits, and the scan's values within 1e-4 of theirs."""
+    import fenics_elasto.inverse.estimator as estimator_module
+    import fenics_elasto.inverse.inner as inner_module
+    import fenics_elasto.inverse.outer as outer_module
+
+    source, target = letter_case(tmp_path, 0.25, 0.35)
+    problem = InverseProblem(load_scene(source, [f"target.surface='{target}'", "optimizer.matched_motion='off'"]))
+    rng = np.random.default_rng(1)
+    W = np.linalg.qr(np.c_[problem.forward.on_loaded(estimate(problem).u), rng.standard_normal((problem.force_dofs, 5))])[0]
+    scans: list[tuple[list, int]] = []
+    iterations = [0]
+    real_scan, real_fit = outer_module.surrogate_scan, inner_module.GaussNewton.fit
+
+    def counted_fit(self, J, start=None, tol=None):
+        fit = real_fit(self, J, start, tol)
+        iterations[0] += fit.iterations
+        return fit
+
+    def recorded_scan(surrogate, points):
+        iterations[0] = 0
+        found = real_scan(surrogate, points)
+        scans.append((found[1], iterations[0]))
+        return found
+
+    monkeypatch.setattr(inner_module.GaussNewton, "fit", counted_fit)
+    monkeypatch.setattr(estimator_module, "surrogate_scan", recorded_scan)
+    loose = estimate(InverseProblem(problem.scene), basis=W).record
+    monkeypatch.setattr(outer_module, "SCAN_LOOSER", 1.0)
+    tight = estimate(InverseProblem(problem.scene), basis=W).record
+    print("scan values and iterations, loose and tight:", scans)
+    assert scans[0][1] < scans[1][1]
+    assert np.allclose(scans[0][0], scans[1][0], rtol=1e-4, atol=0)
+    assert abs(loose["materials"]["letter"]["nu"] / tight["materials"]["letter"]["nu"] - 1) < 1e-5
+    assert abs(loose["objective"]["final"] / tight["objective"]["final"] - 1) < 1e-6
+    assert abs(loose["uncertainty"]["letter.nu"]["std"] / tight["uncertainty"]["letter.nu"]["std"] - 1) < 1e-4
