@@ -11,6 +11,7 @@ import numpy as np
 from scipy.optimize import minimize
 
 from fenics_elasto.util.logs import log
+from fenics_elasto.inverse.options import GAUSS_NEWTON_SHARE
 from fenics_elasto.inverse.profile import Profile, SurrogateProfile
 
 
@@ -117,11 +118,12 @@ class Settle:
 
 
 # The scan's inner fits stop at this multiple of the Gauss-Newton tolerance: at inner_tol
-# itself (1e-6 of Phi), not the 1e-10 that values near the optimum need. They only place
-# a bracket and say whether the data determine the materials, and far from the optimum
-# the tail is longest: the default phantom's rank-240 scan took 199, 69 and 58
-# iterations (27 s of a 150 s estimate) at the tight tolerance (docs/performance.md).
-SCAN_LOOSER = 1e4
+# itself (1e-6 of Phi), not at its GAUSS_NEWTON_SHARE (1e-10) that values near the
+# optimum need. They only place a bracket and say whether the data determine the
+# materials, and far from the optimum the tail is longest: the default phantom's
+# rank-240 scan took 199, 69 and 58 iterations (27 s of a 150 s estimate) at the tight
+# tolerance, 24, 13 and 24 at this one (docs/performance.md).
+SCAN_LOOSER = 1.0 / GAUSS_NEWTON_SHARE
 
 
 def surrogate_scan(surrogate: SurrogateProfile, points) -> tuple[np.ndarray, list[float], list]:

@@ -61,7 +61,7 @@ def test_new_materials_reuse_the_compiled_form(phantom_p1):
     assert K2.norm() < 1e-12 * K1.norm() * 2.5
 
 
-def test_block_products_in_slices_equal_the_matrix_product(phantom_p1):
+def test_block_products_equal_the_matrix_product_column_by_column(phantom_p1):
     """times_block (scipy's CSR product on one rank, MULTIPLY_COLUMNS columns at a time
     across ranks): over a block wider than that, its product is PETSc's own
     matrix-vector product, column for column."""
