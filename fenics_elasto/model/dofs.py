@@ -15,25 +15,30 @@ from dolfinx import fem
 from fenics_elasto.model.scene import Scene
 
 
-# times_block across ranks: columns per sparse-dense product. The whole block at once
+# times_block through PETSc: columns per sparse-dense product. The whole block at once
 # (the surrogate's first space at rank 240 on the default phantom: ~700 columns of 116k
 # rows, 0.65 GB) made PETSc hold two more copies of it: the start's peak 9.3 GB -> 8.0 GB
 # in slices, E the same to the bit.
 MULTIPLY_COLUMNS = 64
+# times_block through scipy from this many columns: below, copying M into scipy's CSR
+# arrays costs more than it saves (the mesh part's degree-3 matrix, 54M entries, times
+# one column: 2.9 s through scipy, mostly faulting in the copy, against ~0.1 s).
+SCIPY_COLUMNS = 8
 
 
 def times_block(M: PETSc.Mat, Y: np.ndarray) -> np.ndarray:
     """M Y for columns Y on this rank's rows of M's column layout (numpy), as numpy on
-    M's owned rows. On one rank through scipy's CSR product, which reads M once for all
-    the columns and writes only the product; PETSc's sparse-dense product reads M once
-    per column (the phantom's K, 116k DOFs and 9.6M entries, times 241 columns: 0.6 s
-    against 1.9 s). Across ranks through PETSc's distributed dense matrices, which bring
-    in the ghost rows, MULTIPLY_COLUMNS at a time."""
+    M's owned rows, in Y's memory order. A wide row-major block on one rank goes through
+    scipy's CSR product, which reads M once for all the columns; PETSc's sparse-dense
+    product reads M once per column (the phantom's K, 116k DOFs and 9.6M entries, times
+    241 columns: 0.6 s against 1.9 s). Column-major blocks (PETSc's own dense arrays,
+    which scipy would first transpose: 1.4 s for 81 columns), narrow ones and every
+    block across ranks go through PETSc, MULTIPLY_COLUMNS at a time."""
     (rows, columns), comm = M.getLocalSize(), M.getComm()
-    if comm.getSize() == 1:
+    if comm.getSize() == 1 and Y.flags.c_contiguous and Y.shape[1] >= SCIPY_COLUMNS:
         indptr, indices, values = M.getValuesCSR()
-        return csr_matrix((values, indices, indptr), shape=(rows, columns)) @ np.ascontiguousarray(Y)
-    out = np.empty((rows, Y.shape[1]))
+        return csr_matrix((values, indices, indptr), shape=(rows, columns)) @ Y
+    out = np.empty((rows, Y.shape[1]), order="F" if Y.flags.f_contiguous else "C")
     for start in range(0, Y.shape[1], MULTIPLY_COLUMNS):
         part = slice(start, min(start + MULTIPLY_COLUMNS, Y.shape[1]))
         D = PETSc.Mat().createDense(((columns, PETSc.DETERMINE), (PETSc.DECIDE, part.stop - part.start)), comm=comm)

@@ -62,18 +62,22 @@ def test_new_materials_reuse_the_compiled_form(phantom_p1):
 
 
 def test_block_products_equal_the_matrix_product_column_by_column(phantom_p1):
-    """times_block (scipy's CSR product on one rank, MULTIPLY_COLUMNS columns at a time
-    across ranks): over a block wider than that, its product is PETSc's own
-    matrix-vector product, column for column."""
-    from fenics_elasto.model.dofs import MULTIPLY_COLUMNS, times_block
+    """times_block, by every path it takes (one rank: a wide row-major block through
+    scipy; a column-major block, as PETSc's dense arrays are, and a narrow one through
+    PETSc, MULTIPLY_COLUMNS at a time): PETSc's own matrix-vector product, column for
+    column, in the block's memory order."""
+    from fenics_elasto.model.dofs import MULTIPLY_COLUMNS, SCIPY_COLUMNS, times_block
 
     model = ElasticModel(phantom_p1)
     M = model.stiffness.terms[0]
-    Y = np.random.default_rng(0).standard_normal((model.dofs.owned, 2 * MULTIPLY_COLUMNS + 5))
     x, y = M.createVecs()
-    exact = np.empty_like(Y)
-    for j in range(Y.shape[1]):
-        x.array[:] = Y[:, j]
-        M.mult(x, y)
-        exact[:, j] = y.array_r
-    assert np.allclose(times_block(M, Y), exact, rtol=0, atol=1e-12 * np.abs(exact).max())
+    for width, order in ((2 * MULTIPLY_COLUMNS + 5, "C"), (2 * MULTIPLY_COLUMNS + 5, "F"), (SCIPY_COLUMNS - 1, "C")):
+        Y = np.asarray(np.random.default_rng(0).standard_normal((model.dofs.owned, width)), order=order)
+        exact = np.empty_like(Y)
+        for j in range(width):
+            x.array[:] = Y[:, j]
+            M.mult(x, y)
+            exact[:, j] = y.array_r
+        product = times_block(M, Y)
+        assert product.flags[f"{order}_CONTIGUOUS"]
+        assert np.allclose(product, exact, rtol=0, atol=1e-12 * np.abs(exact).max())
