@@ -11,7 +11,6 @@ import numpy as np
 from scipy.optimize import minimize
 
 from fenics_elasto.util.logs import log
-from fenics_elasto.inverse.options import GAUSS_NEWTON_SHARE
 from fenics_elasto.inverse.profile import Profile, SurrogateProfile
 
 
@@ -117,26 +116,17 @@ class Settle:
             raise StopIteration
 
 
-# The scan's inner fits stop at this multiple of the Gauss-Newton tolerance: at inner_tol
-# itself (1e-6 of Phi), not at its GAUSS_NEWTON_SHARE (1e-10) that values near the
-# optimum need. They only place a bracket and say whether the data determine the
-# materials, and far from the optimum the tail is longest: the default phantom's
-# rank-240 scan took 199, 69 and 58 iterations (27 s of a 150 s estimate) at the tight
-# tolerance, 24, 13 and 24 at this one (docs/performance.md).
-SCAN_LOOSER = 1.0 / GAUSS_NEWTON_SHARE
-
-
-def surrogate_scan(surrogate: SurrogateProfile, points) -> tuple[np.ndarray, list[float], list]:
+def surrogate_scan(surrogate: SurrogateProfile, points, tol: float | None = None) -> tuple[np.ndarray, list[float], list]:
     """Phi* on the surrogate at each scan point (dense algebra, no factorization), each
-    fit to SCAN_LOOSER x the inner tolerance: the best of them and of the full solves,
-    in s, the values scanned, and (s, Phi*, dPhi*/ds) of each point (what a bracket
-    search starts from)."""
+    inner fit to ``tol`` (the inner solver's by default): the best of them and of the
+    full solves, in s, the values scanned, and (s, Phi*, dPhi*/ds) of each point (what a
+    bracket search starts from)."""
     profile, params = surrogate.profile, surrogate.params
     best_s, best = params.to_s(profile.best_theta()), profile.best().value
     values, known = [], []
     for theta in points:
         s = params.to_s(theta)
-        value, gradient = surrogate.value_and_gradient(s, SCAN_LOOSER * surrogate.fit_inner.tol)
+        value, gradient = surrogate.value_and_gradient(s, tol)
         values.append(value)
         known.append((s, value, gradient))
         log.info(f"  scan  {params.describe(theta)}  Phi* ~ {values[-1]:.6e}  (surrogate)")

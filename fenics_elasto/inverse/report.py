@@ -92,7 +92,8 @@ def half_rank_shift(estimator: Estimator, theta, std_s=None) -> np.ndarray | Non
     if estimator.surrogate is None or trained is None or basis is None or trained.shape[1] < 4:
         return None
     start, params = time.perf_counter(), estimator.params
-    fewer = FewerModes(estimator.profile, estimator.matched_columns + trained.shape[1] // 2)
+    # found to a quarter of sigma: its fits stop at inner_tol, as the scan's (Estimator._outer)
+    fewer = FewerModes(estimator.profile, estimator.matched_columns + trained.shape[1] // 2, estimator.options.inner_tol)
     s = params.to_s(theta)
     xtol, step, bounds = estimator.xtol, BRACKET_STEP, params.s_bounds()
     if std_s is not None:  # surrogate_minimum stops at a tenth of xtol; a bracket made in sigmas
