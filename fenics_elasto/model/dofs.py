@@ -22,7 +22,7 @@ from fenics_elasto.model.scene import Scene
 MULTIPLY_COLUMNS = 64
 # times_block through scipy from this many columns: below, copying M into scipy's CSR
 # arrays costs more than it saves (the mesh part's degree-3 matrix, 54M entries, times
-# one column: 2.9 s through scipy, mostly faulting in the copy, against ~0.1 s).
+# one column: 2.9 s through scipy, mostly faulting in the copy, against 0.04 s).
 SCIPY_COLUMNS = 8
 
 
