@@ -74,9 +74,9 @@ def response_block(forward: BoundaryForward, theta, basis: np.ndarray | None = N
     c = forward.coefficients(theta)[0]
     G = lift(forward, basis)
     K = forward.model.stiffness.matrix(c)
-    rhs = forward.model.dofs.dense(G.getSize()[1])
+    rhs = K.matMult(G)  # both PETSc dense blocks: one product, no round trip through numpy
     block = rhs.getDenseArray()
-    block[:] = -times_block(K, G.getDenseArray())
+    block *= -1.0
     block[forward.clamped_boundary] = G.getDenseArray()[forward.clamped_boundary]
     X = forward.model.dofs.dense(G.getSize()[1])
     with forward.model.solver(c, forward.clamped_boundary, forward.borrows and G.getSize()[1] == 1, rtol) as factor:

@@ -426,8 +426,9 @@ def _residual(K: PETSc.Mat, B, X):
         K.mult(X, R)
         R.aypx(-1.0, B)
         return R
-    R = B.duplicate(copy=True)
-    R.getDenseArray()[:] -= times_block(K, X.getDenseArray())
+    R = K.matMult(X)  # both PETSc dense blocks: one product, no round trip through numpy
+    R.scale(-1.0)
+    R.axpy(1.0, B)
     return R
 
 

@@ -176,7 +176,6 @@ def test_two_states_narrow_the_interval(tmp_path, two_cases):
         assert np.linalg.norm(total - truth) < 0.05 * np.linalg.norm(truth), (name, total, truth)
 
 
-
 def test_states_weighed_by_their_residuals_in_the_full_force_space(tmp_path, two_cases):
     """No bases, no noise stated (the full-space outer loop, weighed after its scan):
     the stretched state's residual is the more structured (levels 9.6e-5 and 4.4e-5 at
@@ -195,6 +194,7 @@ def test_states_weighed_by_their_residuals_in_the_full_force_space(tmp_path, two
     assert low < E_TRUE < high and abs(E["found"] / E_TRUE - 1) < 0.01 and sd["found"] < sd["alike"] / 1.5, (E, sd)
     assert found["states"]["stretched"]["weight"] < 0.5 and found["states"]["pressed"]["weight"] == 1.0, found["states"]
     assert "weigh" in [h["stage"] for h in found["history"]] and alike["states"]["pressed"]["noise_from"] == "alike"
+
 
 def displaced_outline(case, path, std: float):
     """The case's target outline moved by a smooth error of ``std`` (a worse segmentation)."""
