@@ -7,6 +7,7 @@ set of clamped DOFs is a linear combination plus ``zeroRowsColumns``.
 
 from __future__ import annotations
 
+import sys
 from functools import cached_property
 
 import numpy as np
@@ -16,10 +17,17 @@ from petsc4py import PETSc
 
 import dolfinx
 import dolfinx.fem.petsc
+import dolfinx.jit
 from dolfinx import fem
 
 from fenics_elasto.model.dofs import DofLayout
 from fenics_elasto.model.materials import epsilon, lame, lame_jacobian
+
+# The stiffness kernels are compiled at -O3 and their C may reorder its sums, so the
+# loops over quadrature points vectorise: reassociation only, none of -ffast-math's
+# flush-to-zero or finite-only assumptions, and no -march=native (a JIT cache shared
+# by different machines stays valid). benchmarks/kernel_flags.py measures both ways.
+KERNEL_FLAGS = ["-O3", "-fno-math-errno", "-fassociative-math", "-fno-signed-zeros", "-fno-trapping-math"]
 
 SUMS_KEPT = 3  # AffineStiffness.apply: K and the derivatives of two estimated constants
 COMPACT_SHARE = 0.5  # AffineStiffness.terms: a region with fewer of the cells keeps its terms compact too
@@ -51,19 +59,29 @@ def stiffness_quadrature(V: fem.FunctionSpace) -> dict:
     return {"quadrature_degree": max(2 * k - 2, (d - 1) * (g - 1) + k - 1)}
 
 
-def stiffness_form(scene, V: fem.FunctionSpace, E, nu) -> fem.Form:
+def kernel_options() -> dict:
+    """The JIT options of the stiffness forms: dolfinx's compiler arguments followed by
+    KERNEL_FLAGS, unless the user chose their own (dolfinx_jit_options.json), which win."""
+    ours = list(dolfinx.jit.DOLFINX_DEFAULT_JIT_OPTIONS["cffi_extra_compile_args"][0])
+    if sys.platform.startswith("win32") or dolfinx.jit.get_options()["cffi_extra_compile_args"] != ours:
+        return {}
+    return {"cffi_extra_compile_args": ours + KERNEL_FLAGS}
+
+
+def stiffness_form(scene, V: fem.FunctionSpace, E, nu, jit_options: dict | None = None) -> fem.Form:
     """K's form on V with the materials (E, nu) per region: one matrix at fixed values.
     The Lame values are the form's constants, not literals in it: a literal is part of
     the form's signature, so every new material value compiled the kernels again -- 1.2 s
     of each estimate's degree-3 solve in `make demo` (18 estimates), and of every
-    simulation at new materials."""
+    simulation at new materials. ``jit_options``: dolfinx's, ``kernel_options()`` by default."""
     u, v = ufl.TrialFunction(V), ufl.TestFunction(V)
     mesh = scene.mesh
     dx = ufl.Measure("dx", domain=mesh, subdomain_data=scene.cell_tags, metadata=stiffness_quadrature(V))
     mu, lam = lame(E, nu, scene.plane)
     return fem.form(sum(fem.Constant(mesh, 2.0 * float(m)) * ufl.inner(epsilon(u), epsilon(v)) * dx(material.tag)
                         + fem.Constant(mesh, float(lm)) * ufl.div(u) * ufl.div(v) * dx(material.tag)
-                        for material, m, lm in zip(scene.materials, mu, lam)))
+                        for material, m, lm in zip(scene.materials, mu, lam)),
+                    jit_options=kernel_options() if jit_options is None else jit_options)
 
 
 class AffineStiffness:
@@ -113,7 +131,7 @@ class AffineStiffness:
             dx = ufl.Measure("dx", domain=mesh, subdomain_data=region, metadata=metadata)(1)
             small = self.dofs.comm.allreduce(len(cells), op=MPI.SUM) < COMPACT_SHARE * total
             for integrand in (2 * ufl.inner(epsilon(u), epsilon(v)), ufl.div(u) * ufl.div(v)):
-                matrix, compact = self._assemble(fem.form(integrand * dx), pattern, small)
+                matrix, compact = self._assemble(fem.form(integrand * dx, jit_options=kernel_options()), pattern, small)
                 out.append(matrix)
                 compacts.append(compact)
         pattern.destroy()

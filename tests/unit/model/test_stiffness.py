@@ -61,6 +61,31 @@ def test_new_materials_reuse_the_compiled_form(phantom_p1):
     assert K2.norm() < 1e-12 * K1.norm() * 2.5
 
 
+def test_the_kernel_flags_change_round_off_only_and_yield_to_the_users(scenes, monkeypatch):
+    """KERNEL_FLAGS reorder the kernels' sums: K equals the one compiled with dolfinx's
+    own arguments to round-off, on curved cells (the phantom at P2, where the quadrature
+    loops are longest). A user's own compiler arguments are left alone."""
+    import dolfinx.fem.petsc
+    import dolfinx.jit
+
+    from fenics_elasto.model import stiffness
+
+    scene = load_scene(scenes["prostate-phantom"], ["degree=2"])
+    E, nu = material_values(scene)
+    V = ElasticModel(scene).dofs.V
+    plain = {"cffi_extra_compile_args": list(dolfinx.jit.DOLFINX_DEFAULT_JIT_OPTIONS["cffi_extra_compile_args"][0])}
+    assert stiffness.kernel_options()["cffi_extra_compile_args"][-len(stiffness.KERNEL_FLAGS):] == stiffness.KERNEL_FLAGS
+    ours, theirs = stiffness.stiffness_form(scene, V, E, nu), stiffness.stiffness_form(scene, V, E, nu, plain)
+    assert ours.module is not theirs.module
+    K, reference = (dolfinx.fem.petsc.assemble_matrix(form) for form in (ours, theirs))
+    K.assemble()
+    reference.assemble()
+    K.axpy(-1.0, reference)
+    assert K.norm() < 1e-13 * reference.norm()  # other code, the same matrix
+    monkeypatch.setattr(dolfinx.jit, "get_options", lambda: {"cffi_extra_compile_args": ["-O1"]})
+    assert stiffness.kernel_options() == {}
+
+
 def test_block_products_equal_the_matrix_product_column_by_column(phantom_p1):
     """times_block, by every path it takes (one rank: a wide row-major block through
     scipy; a column-major block, as PETSc's dense arrays are, and a narrow one through
