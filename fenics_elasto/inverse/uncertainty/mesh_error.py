@@ -71,8 +71,9 @@ def higher_degree_solutions(scene, E, nu, fields: list[fem.Function],
     walls = scene.facets(list(scene.config["boundary"]["fixed"]) + list(scene.config["boundary"]["loaded"]))
     bc = fem.dirichletbc(held, fem.locate_dofs_topological(V, mesh.topology.dim - 1, walls))
     form = stiffness_form(scene, V, E, nu)
-    # Blocked by node (3 x 3) for the two-level cycle: a third less index data to assemble and stream
-    # (the phantom's P3: assembly 2.6 -> 1.5 s, a product 0.046 -> 0.024 s; block SOR as fast). AMG keeps AIJ.
+    # Blocked by node (3 x 3) for the two-level cycle: a third less index data to assemble and
+    # stream (the phantom's P3: assembly 2.6 -> 1.5 s, a product 0.046 -> 0.024 s; block SOR as
+    # fast). AMG keeps AIJ (not measured blocked).
     A = dolfinx.fem.petsc.assemble_matrix(form, bcs=[bc], kind=None if coarse is None else PETSc.Mat.Type.BAIJ)
     A.assemble()
     indices, owned_count = bc.dof_indices()
