@@ -15,8 +15,10 @@ K(theta)(G + V a) on the free DOFs says how far from exact it is elsewhere.
 
 Only the first snapshot needs a factorization: ``refine`` makes the surrogate exact at
 any nearby theta on that factorization alone (docs/method.md §7). ``affine_pieces`` sums
-the terms whose coefficients move together into pieces M_g, so fewer products are kept.
-Memory: V and M_g V, (1 + pieces) x DOFs x (size of V) numbers.
+the terms whose coefficients move together into pieces M_g, so fewer products are made.
+Memory: V, DOFs x (size of V) numbers. The products M_g V are not kept: a residual
+multiplies the pieces by V a afresh, r columns instead of the space's (at rank 240 on the
+default phantom the kept ones were 1.3 GB, each page of it faulted in once).
 """
 
 from __future__ import annotations
@@ -78,8 +80,8 @@ def piece_matrix(stiffness, weights: np.ndarray):
 
 class ColumnBlocks:
     """A tall matrix kept as the column blocks it was given: appending copies nothing.
-    (V and each M_g V grew by np.hstack, a full copy per extension: at rank 240 on the
-    default phantom, 697 columns of 116k rows, 19 s of a 320 s estimate.)"""
+    (V grew by np.hstack, a full copy per extension: at rank 240 on the default phantom,
+    697 columns of 116k rows, 19 s of a 320 s estimate with the products kept alike.)"""
 
     def __init__(self, rows: int):
         self.rows = rows
@@ -104,6 +106,21 @@ class ColumnBlocks:
         return np.vstack([block.T @ Y for block in self.blocks]) if self.blocks else np.zeros((0, *Y.shape[1:]))
 
 
+ROWS_AT_ONCE = 4096  # times_in_place: rows per product (4096 x 723 columns: a 24 MB temporary)
+
+
+def times_in_place(Y: np.ndarray, W: np.ndarray) -> np.ndarray:
+    """Y @ W for a square W, written over Y a slab of rows at a time: the product needs no
+    block of Y's size (at rank 240 on the default phantom, 723 columns of 116k rows: 670 MB
+    of memory the estimate's peak no longer holds). Any other W: a new array."""
+    if W.shape[0] != W.shape[1] or not Y.flags.c_contiguous:
+        return Y @ W
+    for start in range(0, len(Y), ROWS_AT_ONCE):
+        rows = Y[start:start + ROWS_AT_ONCE]
+        rows[:] = rows @ W
+    return Y
+
+
 class MaterialSurrogate:
     """J(theta), dJ/dtheta and the equation residual from the snapshots added so far."""
 
@@ -123,7 +140,6 @@ class MaterialSurrogate:
         self.matched_G = problem.observation.rows(self.G)
         r = self.G.shape[1]
         self.V = ColumnBlocks(len(self.G))
-        self.MV = [ColumnBlocks(len(self.G)) for _ in self.terms]
         self.VMV = [np.zeros((0, 0)) for _ in self.terms]
         self.VMG = [np.zeros((0, r)) for _ in self.terms]
         self.matched_V = problem.observation.rows(np.zeros((len(self.G), 0)))
@@ -158,26 +174,26 @@ class MaterialSurrogate:
         """Add the mode fields X (owned rows, r) solved at theta, and their derivatives in
         the materials (forward.response_sensitivities: fields that vanish on the
         boundary); returns the directions kept."""
-        kept = self.extend(np.hstack([X - self.G, *sensitivities]))
+        Y = np.hstack([X, *sensitivities])
+        Y[:, :X.shape[1]] -= self.G  # X - G without a block of its own
         self.snapshots.append(np.array(theta, float))
-        return kept
+        return self.extend(Y)
 
     def extend(self, Y: np.ndarray) -> int:
         """Add the directions of Y (owned rows) that V does not hold yet; zero on the
         clamped DOFs. Returns how many were kept."""
         Y[~self.free] = 0.0
         scale = np.sqrt(max(np.max(np.diag(self._dot(Y, Y))), 1e-300))
-        for _ in range(2):  # Gram-Schmidt against V, twice for round-off
+        for _ in range(2 if self.V.width else 0):  # Gram-Schmidt against V, twice for round-off
             Y -= self.V @ self._dot_V(Y)
         s2, U = np.linalg.eigh(self._dot(Y, Y))
         keep = s2 > (1e-10 * scale) ** 2
-        Q = Y @ (U[:, keep] / np.sqrt(s2[keep]))
-        MQ = [times_block(M, Q) for M in self.terms]
-        for j in range(len(self.terms)):
-            cross = self._dot_V(MQ[j])
-            self.VMV[j] = np.block([[self.VMV[j], cross], [cross.T, self._dot(Q, MQ[j])]])
+        Q = times_in_place(Y, U[:, keep] / np.sqrt(s2[keep]))
+        for j, M in enumerate(self.terms):  # one product M_g Q alive at a time
+            MQ = times_block(M, Q)
+            cross = self._dot_V(MQ)
+            self.VMV[j] = np.block([[self.VMV[j], cross], [cross.T, self._dot(Q, MQ)]])
             self.VMG[j] = np.vstack([self.VMG[j], self._dot(Q, self.MG[j])])
-            self.MV[j].append(MQ[j])
         self.V.append(Q)
         self.matched_V = np.concatenate([self.matched_V, self.problem.observation.rows(Q)], axis=2)
         return int(keep.sum())
@@ -234,14 +250,17 @@ class MaterialSurrogate:
             return self._last_residuals[1][:1], self._last_residuals[2][:1]
         c, dc, a, da = self._reduced(theta)
 
-        def on(kept, coefficients, x):  # sum_g coefficients_g (M_g Y) x for the kept M_g Y (Y: G or V)
-            return sum(cg * (MY @ x) for cg, MY in zip(coefficients, kept) if cg != 0)
+        def on(coefficients, Y):  # sum_g coefficients_g M_g Y, the pieces times Y
+            return sum(cg * times_block(M, Y) for cg, M in zip(coefficients, self.terms) if cg != 0)
 
-        pairs = [(combine(c, self.MG), on(self.MV, c, a))]
-        if q is not None:  # along q: matrix-vector products only
-            Q = q if q.ndim == 2 else q[:, None]  # one column per state's controls
-            aQ = a @ Q
-            pairs += [(on(self.MG, dck, Q) + on(self.MV, dck, aQ), on(self.MV, c, d @ Q)) for dck, d in zip(dc, da)]
+        def on_G(coefficients, x):  # sum_g coefficients_g (M_g G) x, from the kept M_g G
+            return sum(cg * (MG @ x) for cg, MG in zip(coefficients, self.MG) if cg != 0)
+
+        Va = self.V @ a
+        pairs = [(combine(c, self.MG), on(c, Va))]
+        if q is not None:  # along q: a column per state's controls
+            Q = q if q.ndim == 2 else q[:, None]
+            pairs += [(on_G(dck, Q) + on(dck, Va @ Q), on(c, self.V @ (d @ Q))) for dck, d in zip(dc, da)]
         blocks, relative = [], []
         for load, applied in pairs:
             load[~self.free] = 0.0
@@ -261,4 +280,4 @@ def release(surrogate: MaterialSurrogate) -> None:
     (util/memory.py): on the default phantom at rank 80 that step went 14.7 -> 10.0 s
     and the estimate's peak 6.21 -> 5.51 GB, 177k fewer page faults; E and sigma the
     same to the bit."""
-    surrogate.V, surrogate.MV, surrogate.G, surrogate.MG = ColumnBlocks(0), [], np.zeros((0, 0)), []
+    surrogate.V, surrogate.G, surrogate.MG = ColumnBlocks(0), np.zeros((0, 0)), []

@@ -10,7 +10,7 @@ from fenics_elasto.inverse.estimator import estimate
 from fenics_elasto.mesh.builtin import build_scene
 from fenics_elasto.inverse.objective import InverseProblem
 from fenics_elasto.model.scene import load_scene
-from fenics_elasto.inverse.surrogate import ColumnBlocks, MaterialSurrogate
+from fenics_elasto.inverse.surrogate import ROWS_AT_ONCE, ColumnBlocks, MaterialSurrogate, times_in_place
 from fenics_elasto.model.dofs import times_block
 from fenics_elasto.model.responses import response_block, response_sensitivities
 from fenics_elasto.inverse.refinement import refine
@@ -219,6 +219,19 @@ def test_column_blocks_multiply_as_the_matrix_they_hold():
     assert np.allclose(V @ x, whole @ x, rtol=0, atol=1e-13)
     assert np.allclose(V @ X, whole @ X, rtol=0, atol=1e-13)
     assert np.allclose(V.transposed_times(Y), whole.T @ Y, rtol=0, atol=1e-13)
+
+
+def test_the_product_in_place_is_the_product():
+    """times_in_place: Y @ W over Y's own memory, slab by slab (more rows than one slab,
+    and a last slab shorter); a W that is not square gets a new array."""
+    rng = np.random.default_rng(3)
+    Y = rng.standard_normal((2 * ROWS_AT_ONCE + 123, 7))
+    W, wide = rng.standard_normal((7, 7)), rng.standard_normal((7, 9))
+    expected, original = Y @ W, Y.copy()
+    out = times_in_place(Y, W)
+    assert out is Y and np.allclose(out, expected, rtol=0, atol=1e-12)
+    other = times_in_place(original, wide)
+    assert other is not original and np.allclose(other, original @ wide, rtol=0, atol=1e-12)
 
 
 def test_affine_pieces_sum_to_the_stiffness(inclusion):
