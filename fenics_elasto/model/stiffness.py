@@ -167,8 +167,20 @@ class AffineStiffness:
         return dE, dnu
 
     def matrix(self, c) -> PETSc.Mat:
-        """Unconstrained K = sum_j c_j M_j (a new matrix)."""
+        """Unconstrained K = sum_j c_j M_j (a new matrix); on a small region's own sparsity
+        where every term with c_j != 0 has a compact copy (its derivative, dK/dE_m)."""
+        nonzero = self._compact(c)
+        if nonzero is not None:
+            return combine(np.asarray(c)[nonzero], [self.compact_terms[j] for j in nonzero])
         return combine(c, self.terms)
+
+    def _compact(self, c) -> np.ndarray | None:
+        """The terms with c_j != 0 where each has a compact copy and some c_j are zero (a
+        small region's derivative); else None."""
+        nonzero = np.flatnonzero(c)
+        if len(nonzero) < len(c) and all(self.compact_terms[j] is not None for j in nonzero):
+            return nonzero
+        return None
 
     def apply(self, c, x: PETSc.Vec, out: PETSc.Vec) -> PETSc.Vec:
         """out = (sum_j c_j M_j) x -- K(theta) x, or with c = dc/dtheta_k its derivative.
@@ -178,8 +190,7 @@ class AffineStiffness:
         every gradient of a full-space fit needs K and each dK/dtheta_k; the matrices are
         small beside the factors); the iterative method, meant for meshes where memory
         binds, forms no sum and skips zero coefficients."""
-        nonzero = np.flatnonzero(c)
-        if len(nonzero) < len(c) and all(self.compact_terms[j] is not None for j in nonzero):
+        if self._compact(c) is not None:
             return self._apply_terms(c, self.compact_terms, x, out)
         if self.method == "direct":
             key = tuple(np.asarray(c, float))
