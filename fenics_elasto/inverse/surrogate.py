@@ -112,7 +112,8 @@ ROWS_AT_ONCE = 4096  # times_in_place: rows per product (4096 x 723 columns: a 2
 def times_in_place(Y: np.ndarray, W: np.ndarray) -> np.ndarray:
     """Y @ W for a square W, written over Y a slab of rows at a time: the product needs no
     block of Y's size (at rank 240 on the default phantom, 723 columns of 116k rows: 670 MB
-    of memory the estimate's peak no longer holds). Any other W: a new array."""
+    of memory the estimate's peak no longer holds). Any other W, or a Y not in row order:
+    a new array."""
     if W.shape[0] != W.shape[1] or not Y.flags.c_contiguous:
         return Y @ W
     for start in range(0, len(Y), ROWS_AT_ONCE):
