@@ -31,7 +31,7 @@ from scipy.spatial import cKDTree
 from fenics_elasto.geometry.matching import joined_motion, match_surface
 from fenics_elasto.geometry.targets import SurfaceTerm
 from fenics_elasto.inverse.checks import check_determined, check_extent, check_overlap, target_warnings
-from fenics_elasto.inverse.inner import LBFGS, GaussNewton, InnerResult
+from fenics_elasto.inverse.inner import LBFGS, GaussNewton, InnerResult, fitted_to
 from fenics_elasto.inverse.linearisation import ProfiledLinearisation
 from fenics_elasto.inverse.measured_force import (apply_measured_force, measured_forces,
                                                   predicted_force_covariances)
@@ -39,7 +39,7 @@ from fenics_elasto.inverse.misfit import PointTerm
 from fenics_elasto.inverse.objective import Evaluation, InverseProblem
 from fenics_elasto.inverse.options import Options
 from fenics_elasto.inverse.outer import minimize_on_surrogate, minimize_profile, scan_grid, surrogate_scan
-from fenics_elasto.inverse.profile import Profile, SurrogateProfile
+from fenics_elasto.inverse.profile import LOOSE, Profile, SurrogateProfile
 from fenics_elasto.inverse.reduction.bases import reach_warning, with_matched_motion
 from fenics_elasto.inverse.states import EARLY_SPREAD, REWEIGH_ROUNDS, weigh_by_residuals
 from fenics_elasto.inverse.report import describe_offset, describe_uncertainty, fit_of_bases, run_warnings
@@ -233,7 +233,8 @@ class Estimator:
         else:  # one factorization at the initial values; the scan on the surrogate it seeds
             log.info(f"initial values solved in full with their sensitivities, then a scan of {len(points)} "
                      f"material values on the surrogate (inner: {self.inner_name})")
-            self.profile.solve(self.params.initial, "start")
+            with fitted_to(self.profile.inner, self.options.inner_tol):  # it seeds the scan only (profile.LOOSE)
+                self.profile.solve(self.params.initial, LOOSE)
             self._held.enter_context(self.profile.borrowing())  # later solves on its factors where near enough
             self.weigh_states(EARLY_SPREAD)
         self.outer_iterations = self._outer(points, first=True)
@@ -274,7 +275,10 @@ class Estimator:
 
     def polish(self) -> None:
         """An L-BFGS inner solve warm-started along the path may stop above the inner
-        optimum: re-solve the best material value cold, from the surface-matched start."""
+        optimum: re-solve the best material value cold, from the surface-matched start. A
+        loosely fitted start (profile.LOOSE) still the best is fitted again, tightly."""
+        if min(self.profile.solved, key=lambda item: item[1].value)[2] == LOOSE:
+            self.profile.solve(self.profile.best_theta(), "outer")
         if self.inner_name == "gauss-newton":
             return  # always cold: Phi* is path independent
         theta = self.profile.best_theta()

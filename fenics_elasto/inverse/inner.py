@@ -19,6 +19,7 @@ included (the envelope theorem makes dPhi*/dtheta the partial derivative there).
 from __future__ import annotations
 
 from collections.abc import Callable
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -206,3 +207,13 @@ class LBFGS:
                        options={"maxiter": self.maxiter, "maxcor": 30, "ftol": self.tol, "gtol": 1e-12})
         ev = cache.get(res.x.tobytes()) or self.evaluate(theta, res.x * self.control_scale, gradient=True)
         return InnerResult(res.x * self.control_scale, ev, int(res.nit), res.nit < self.maxiter)
+
+
+@contextmanager
+def fitted_to(inner, tol: float):
+    """The inner solver's fits inside the block stop at ``tol`` instead of its own."""
+    own, inner.tol = inner.tol, tol
+    try:
+        yield
+    finally:
+        inner.tol = own

@@ -11,7 +11,7 @@ import numpy as np
 from scipy.optimize import minimize
 
 from fenics_elasto.util.logs import log
-from fenics_elasto.inverse.profile import Profile, SurrogateProfile
+from fenics_elasto.inverse.profile import LOOSE, Profile, SurrogateProfile
 
 
 BRACKET_GUARD = 0.05  # bracketed_minimum: a step keeps this share of the bracket from its ends
@@ -153,7 +153,7 @@ def minimize_on_surrogate(profile: Profile, surrogate: SurrogateProfile, xtol: n
         log.info(f"  surrogate optimum {params.describe(theta)}  (equation residual "
                  f"{profile.surrogate.residual(theta):.1e}, {evaluations} evaluations)")
         within = xtol if settled_within is None else settled_within(xtol)
-        if any(np.all(np.abs(x - s) < within) for s, _, _ in profile.solved):
+        if any(np.all(np.abs(x - s) < within) for s, _, stage in profile.solved if stage != LOOSE):
             return rounds
         profile.solve(theta, "outer")
     return maxiter

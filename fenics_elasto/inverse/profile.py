@@ -39,6 +39,15 @@ def envelope_gradient(misfit, fit, dJ: np.ndarray) -> np.ndarray:
     return np.array([np.sum(g * (dJk @ fit.q)) for dJk in dJ])
 
 
+# The stage of a solve whose inner fit stopped at inner_tol, not at the tolerance the
+# optimum's fits keep: the surrogate path's first solve, which only seeds the scan (its
+# value, beside the surrogate's, places the bracket and says whether the data determine the
+# materials). It never ends the outer loop nor answers for a later solve at its value, so
+# the answer is always a tight fit. The default phantom's rank-240 start: 77 -> 15
+# iterations (5.4 -> 1.1 s), Phi* 1e-6 higher, E the same to the bit.
+LOOSE = "start"
+
+
 class Profile:
     """Phi*(theta) with every value solved in full; keeps every solved point."""
 
@@ -75,8 +84,8 @@ class Profile:
         return self.problem.states.stack_controls(J), np.stack([self.problem.states.stack_controls(dJk) for dJk in dJ])
 
     def known(self, s) -> InnerResult | None:
-        for s_seen, result, _ in self.solved:
-            if np.all(np.abs(np.asarray(s) - s_seen) < self.same_within):
+        for s_seen, result, stage in self.solved:
+            if stage != LOOSE and np.all(np.abs(np.asarray(s) - s_seen) < self.same_within):
                 return result
         return None
 

@@ -318,3 +318,43 @@ def test_the_scan_fits_loosely_and_the_answer_stays(tmp_path, monkeypatch):
     assert abs(loose["materials"]["letter"]["nu"] / tight["materials"]["letter"]["nu"] - 1) < 1e-5
     assert abs(loose["objective"]["final"] / tight["objective"]["final"] - 1) < 1e-6
     assert abs(loose["uncertainty"]["letter.nu"]["std"] / tight["uncertainty"]["letter.nu"]["std"] - 1) < 1e-4
+
+
+def test_the_start_is_fitted_loosely_and_is_never_the_answer(tmp_path, monkeypatch):
+    """profile.LOOSE: a reduced estimate's first full solve only seeds the scan, so its
+    inner fit stops at inner_tol, while the fits that answer keep the Gauss-Newton
+    tolerance; the answer is a tight fit's, equal to the one of an estimate whose start
+    was fitted tightly. Started at the answer itself, the estimate still ends on a tight
+    fit at that value, not on the start."""
+    import contextlib
+
+    import fenics_elasto.inverse.estimator as estimator_module
+    import fenics_elasto.inverse.inner as inner_module
+
+    source, target = letter_case(tmp_path, 0.25, 0.35)
+    overrides = [f"target.surface='{target}'", "optimizer.matched_motion='off'"]
+    problem = InverseProblem(load_scene(source, overrides))
+    rng = np.random.default_rng(1)
+    W = np.linalg.qr(np.c_[problem.forward.on_loaded(estimate(problem).u), rng.standard_normal((problem.force_dofs, 5))])[0]
+    tolerances: list[float] = []
+    real_fit = inner_module.GaussNewton.fit
+
+    def recorded_fit(self, J, start=None, tol=None):
+        tolerances.append(self.tol if tol is None else tol)
+        return real_fit(self, J, start, tol)
+
+    monkeypatch.setattr(inner_module.GaussNewton, "fit", recorded_fit)
+    loose = estimate(InverseProblem(problem.scene), basis=W).record
+    options = Options()
+    assert tolerances[0] == options.inner_tol > options.gauss_newton_tol and options.gauss_newton_tol in tolerances[1:]
+    monkeypatch.setattr(estimator_module, "fitted_to", lambda inner, tol: contextlib.nullcontext())
+    tight = estimate(InverseProblem(problem.scene), basis=W).record
+    monkeypatch.undo()
+    nu = loose["materials"]["letter"]["nu"]
+    assert loose["history"][0]["stage"] == "start" and abs(nu / tight["materials"]["letter"]["nu"] - 1) < 1e-9
+    at_answer = load_scene(source, overrides + [f"materials.letter.nu={{estimate=true, initial={nu!r}, bounds=[0.0, 0.499]}}"])
+    again = estimate(InverseProblem(at_answer), basis=W).record
+    best = min(again["history"], key=lambda row: row["phi"])
+    print("started at the answer:", again["history"])
+    assert best["stage"] != "start" and best["theta"] == [pytest.approx(nu, abs=1e-4)]  # nu's xtol: 1e-4
+    assert again["materials"]["letter"]["nu"] == best["theta"][0]
