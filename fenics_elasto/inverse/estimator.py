@@ -259,7 +259,8 @@ class Estimator:
         # whether the data determine the materials, and far from the optimum the tail is
         # longest (the default phantom's rank-240 scan: 199, 69 and 58 iterations, 27 s of
         # a 150 s estimate, against 24, 13 and 24; docs/performance.md).
-        start, scanned, known = surrogate_scan(self.surrogate, points, self.options.inner_tol)
+        with fitted_to(self.profile.inner, self.options.inner_tol):
+            start, scanned, known = surrogate_scan(self.surrogate, points)
         if first:
             self._check_identifiable([self.profile.best().value] + scanned)
         return minimize_on_surrogate(self.profile, self.surrogate, self.xtol, self.options.outer_maxiter, start, known,

@@ -94,11 +94,10 @@ class GaussNewton:
         self.maxiter = maxiter
         self.tol = tol
 
-    def fit(self, J: np.ndarray, start: np.ndarray | None = None, tol: float | None = None) -> LinearFit:
+    def fit(self, J: np.ndarray, start: np.ndarray | None = None) -> LinearFit:
         """Minimise Phi(q) + alpha/2 |q - q0|^2 for one response J (n, gdim, r), from q0
         (or from ``start``: the same objective, another path -- on a rough target it may
-        end in another local minimum), to ``tol`` (the solver's own by default)."""
-        tol = self.tol if tol is None else tol
+        end in another local minimum), to the solver's ``tol`` (``fitted_to`` sets another)."""
         n, gdim, r = J.shape
         flat = J.reshape(n * gdim, r)
         misfit = self.misfit
@@ -122,7 +121,7 @@ class GaussNewton:
             # The most the Gauss-Newton models promise (the undamped step's decrease, grad H^-1
             # grad / 2): below tol for both, converged without trying a step (the phantom's fits
             # spent a closest-point query, or a cascade of damped ones, on learning that).
-            if max(0.5 * float(grad @ np.linalg.solve(H, grad)) for H in hessians) <= tol * (phi + prior):
+            if max(0.5 * float(grad @ np.linalg.solve(H, grad)) for H in hessians) <= self.tol * (phi + prior):
                 converged = True
                 break
             while True:  # Levenberg-Marquardt: damp until the objective decreases; the better model's step
@@ -137,7 +136,7 @@ class GaussNewton:
                 break
             q, (y, residual, phi, prior) = q + step, trial
             damping = max(damping / 10.0, 1e-12)
-            if decrease <= tol * (phi + prior):
+            if decrease <= self.tol * (phi + prior):
                 converged = True
                 break
         return LinearFit(q, phi, prior, residual, nit, converged)
@@ -211,7 +210,8 @@ class LBFGS:
 
 @contextmanager
 def fitted_to(inner, tol: float):
-    """The inner solver's fits inside the block stop at ``tol`` instead of its own."""
+    """The inner solver's fits inside the block stop at ``tol`` instead of its own: the
+    values that only place a bracket (the scan, the start that seeds it)."""
     own, inner.tol = inner.tol, tol
     try:
         yield

@@ -116,17 +116,16 @@ class Settle:
             raise StopIteration
 
 
-def surrogate_scan(surrogate: SurrogateProfile, points, tol: float | None = None) -> tuple[np.ndarray, list[float], list]:
-    """Phi* on the surrogate at each scan point (dense algebra, no factorization), each
-    inner fit to ``tol`` (the inner solver's by default): the best of them and of the
-    full solves, in s, the values scanned, and (s, Phi*, dPhi*/ds) of each point (what a
-    bracket search starts from)."""
+def surrogate_scan(surrogate: SurrogateProfile, points) -> tuple[np.ndarray, list[float], list]:
+    """Phi* on the surrogate at each scan point (dense algebra, no factorization): the
+    best of them and of the full solves, in s, the values scanned, and (s, Phi*,
+    dPhi*/ds) of each point (what a bracket search starts from)."""
     profile, params = surrogate.profile, surrogate.params
     best_s, best = params.to_s(profile.best_theta()), profile.best().value
     values, known = [], []
     for theta in points:
         s = params.to_s(theta)
-        value, gradient = surrogate.value_and_gradient(s, tol)
+        value, gradient = surrogate.value_and_gradient(s)
         values.append(value)
         known.append((s, value, gradient))
         log.info(f"  scan  {params.describe(theta)}  Phi* ~ {values[-1]:.6e}  (surrogate)")

@@ -227,11 +227,10 @@ class SurrogateProfile:
         values = [fit.value for fit in fits]
         return float(max(values) - min(values)), fits[int(np.argmin(values))].q
 
-    def value_and_gradient(self, s, tol: float | None = None) -> tuple[float, np.ndarray]:
-        """Phi* and dPhi*/ds at s, the inner fit to ``tol`` (the inner solver's by default)."""
+    def value_and_gradient(self, s) -> tuple[float, np.ndarray]:
         theta = self.params.to_theta(s)
         J, dJ = self.response(theta)
-        fit = self.fit_inner.fit(J, tol=tol)
+        fit = self.fit_inner.fit(J)
         self.evaluations += 1
         return fit.value, envelope_gradient(self.fit_inner.misfit, fit, dJ) * self.params.dtheta_ds(theta)
 

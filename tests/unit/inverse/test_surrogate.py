@@ -2,6 +2,8 @@
 converging between them, exact derivatives, and an estimate that agrees with the one
 solved in full at every material value while factorizing less."""
 
+import contextlib
+
 import numpy as np
 import pytest
 
@@ -296,14 +298,16 @@ def test_the_scan_fits_loosely_and_the_answer_stays(tmp_path, monkeypatch):
     iterations, fitted_tightly = [0], [False]
     real_scan, real_fit = outer_module.surrogate_scan, inner_module.GaussNewton.fit
 
-    def counted_fit(self, J, start=None, tol=None):
-        fit = real_fit(self, J, start, tol)
+    def counted_fit(self, J, start=None):
+        fit = real_fit(self, J, start)
         iterations[0] += fit.iterations
         return fit
 
-    def recorded_scan(surrogate, points, tol=None):
+    def recorded_scan(surrogate, points):
         iterations[0] = 0
-        found = real_scan(surrogate, points, None if fitted_tightly[0] else tol)
+        tight = inner_module.fitted_to(surrogate.fit_inner, Options().gauss_newton_tol)
+        with tight if fitted_tightly[0] else contextlib.nullcontext():
+            found = real_scan(surrogate, points)
         scans.append((found[1], iterations[0]))
         return found
 
@@ -326,8 +330,6 @@ def test_the_start_is_fitted_loosely_and_is_never_the_answer(tmp_path, monkeypat
     tolerance; the answer is a tight fit's, equal to the one of an estimate whose start
     was fitted tightly. Started at the answer itself, the estimate still ends on a tight
     fit at that value, not on the start."""
-    import contextlib
-
     import fenics_elasto.inverse.estimator as estimator_module
     import fenics_elasto.inverse.inner as inner_module
 
@@ -339,15 +341,21 @@ def test_the_start_is_fitted_loosely_and_is_never_the_answer(tmp_path, monkeypat
     tolerances: list[float] = []
     real_fit = inner_module.GaussNewton.fit
 
-    def recorded_fit(self, J, start=None, tol=None):
-        tolerances.append(self.tol if tol is None else tol)
-        return real_fit(self, J, start, tol)
+    def recorded_fit(self, J, start=None):
+        tolerances.append(self.tol)
+        return real_fit(self, J, start)
 
     monkeypatch.setattr(inner_module.GaussNewton, "fit", recorded_fit)
     loose = estimate(InverseProblem(problem.scene), basis=W).record
     options = Options()
     assert tolerances[0] == options.inner_tol > options.gauss_newton_tol and options.gauss_newton_tol in tolerances[1:]
-    monkeypatch.setattr(estimator_module, "fitted_to", lambda inner, tol: contextlib.nullcontext())
+    real_fitted_to, calls = estimator_module.fitted_to, []
+
+    def start_tight(inner, tol):  # the first block, the start's, at the solver's own tolerance; the scan as always
+        calls.append(tol)
+        return contextlib.nullcontext() if len(calls) == 1 else real_fitted_to(inner, tol)
+
+    monkeypatch.setattr(estimator_module, "fitted_to", start_tight)
     tight = estimate(InverseProblem(problem.scene), basis=W).record
     monkeypatch.undo()
     nu = loose["materials"]["letter"]["nu"]
