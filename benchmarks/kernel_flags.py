@@ -18,11 +18,10 @@ import numpy as np
 
 import fenics_elasto  # noqa: F401  (imports dolfinx_solver before petsc4py)
 import dolfinx.fem.petsc
-import dolfinx.jit
 from dolfinx import fem
 from fenics_elasto.mesh.builtin import build_scene
 from fenics_elasto.model.scene import load_scene
-from fenics_elasto.model.stiffness import kernel_options, stiffness_form
+from fenics_elasto.model.stiffness import dolfinx_compile_args, kernel_options, stiffness_form
 
 
 def assembled(form, repeat: int):
@@ -42,7 +41,7 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--repeat", type=int, default=3)
     args = parser.parse_args()
-    default = {"cffi_extra_compile_args": list(dolfinx.jit.DOLFINX_DEFAULT_JIT_OPTIONS["cffi_extra_compile_args"][0])}
+    default = {"cffi_extra_compile_args": dolfinx_compile_args()}
     with tempfile.TemporaryDirectory() as tmp:
         scene = load_scene(build_scene("prostate-phantom", Path(tmp)))
     E = [10.0 * (i + 1) for i in range(len(scene.materials))]

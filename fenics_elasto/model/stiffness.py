@@ -59,10 +59,15 @@ def stiffness_quadrature(V: fem.FunctionSpace) -> dict:
     return {"quadrature_degree": max(2 * k - 2, (d - 1) * (g - 1) + k - 1)}
 
 
+def dolfinx_compile_args() -> list[str]:
+    """dolfinx's own default compiler arguments for the kernels it compiles."""
+    return list(dolfinx.jit.DOLFINX_DEFAULT_JIT_OPTIONS["cffi_extra_compile_args"][0])
+
+
 def kernel_options() -> dict:
     """The JIT options of the stiffness forms: dolfinx's compiler arguments followed by
     KERNEL_FLAGS, unless the user chose their own (dolfinx_jit_options.json), which win."""
-    ours = list(dolfinx.jit.DOLFINX_DEFAULT_JIT_OPTIONS["cffi_extra_compile_args"][0])
+    ours = dolfinx_compile_args()
     if sys.platform.startswith("win32") or dolfinx.jit.get_options()["cffi_extra_compile_args"] != ours:
         return {}
     return {"cffi_extra_compile_args": ours + KERNEL_FLAGS}
