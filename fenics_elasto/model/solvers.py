@@ -78,6 +78,7 @@ MEMORY_SHARE = 0.8  # ... and refuse factors estimated above this share of the a
 REFINEMENTS = 10  # direct: at most this many refinement steps per solve
 MAX_ITERATIONS = 2000  # iterative: CG iterations per right-hand side
 NEARBY_RATIO = 4.0  # NearbySolver: largest spread of c / c0 (CG ~ sqrt(ratio) log(2 / rtol) iterations)
+RHS_BLOCK_BYTES = 256 * 2**20  # direct: MUMPS solves a block of right-hand sides this much at a time
 WARM_COLUMNS = (8, 64)  # WarmStart keeps at least 8 recent solutions, at most 64
 
 # GAMG beyond PETSc's defaults (benchmarks/solvers.py, 116k P2 DOFs): SOR smoothing
@@ -313,8 +314,9 @@ class DirectSolver(LinearSolver):
             K.setOption(PETSc.Mat.Option.SPD, True)
         self.ksp.setFromOptions()
         pc.setFactorSetUpSolverType()
+        F = pc.getFactorMatrix()
+        F.setMumpsIcntl(27, -rhs_blocking(self.dofs))  # a user's -elasto_mat_mumps_icntl_27 still wins
         if settings.blr > 0:
-            F = pc.getFactorMatrix()
             F.setMumpsIcntl(35, 2)  # block low-rank in factorization and solve
             F.setMumpsCntl(7, settings.blr)  # dropping tolerance of the low-rank blocks
         self._analysed = False
@@ -417,6 +419,15 @@ class DirectSolver(LinearSolver):
             return SolverError(f"{where}: that rtol is below what double precision reaches here; raise [solver] rtol")
         return SolverError(f"{where}: K is (nearly) singular -- clamp a group that stops every rigid motion -- "
                            "or [solver] blr is too loose")
+
+
+def rhs_blocking(dofs: int) -> int:
+    """MUMPS's largest block of right-hand sides per pass over the factors (ICNTL(27)):
+    its default, 32, passes over the factors eight times for the 241 columns of a
+    rank-240 snapshot. At 116k DOFs, 241 columns took 3.9 s at 32 and 2.9-3.0 s at up to
+    512 (81 columns: 1.5 -> 1.1 s), with the same peak memory (benchmarks/forward.py).
+    Capped so that one block of the solution stays within RHS_BLOCK_BYTES."""
+    return int(np.clip(RHS_BLOCK_BYTES // (8 * dofs), 32, 512))
 
 
 def _residual(K: PETSc.Mat, B, X):

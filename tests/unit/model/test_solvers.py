@@ -15,7 +15,8 @@ from fenics_elasto.model.loads import boundary_load
 from fenics_elasto.model.forward import BoundaryForward
 from fenics_elasto.model.scene import load_scene
 from fenics_elasto.model.simulate import material_values, simulate
-from fenics_elasto.model.solvers import DIRECT_LIMIT, SolverError, SolverSettings
+from fenics_elasto.model.solvers import (DIRECT_LIMIT, DirectSolver, SolverError, SolverSettings, SolverStats,
+                                         rhs_blocking)
 from fenics_elasto.model.responses import response_block
 
 MPI_SCRIPT = TESTS / "mpi" / "solvers.py"
@@ -291,6 +292,39 @@ def test_factors_too_big_for_the_machine_are_refused_before_factorizing(cantilev
     with pytest.raises(SolverError, match=r"the direct factorization of K \([\d,]+ DOFs\) needs ~.* GB.*iterative"):
         _solve_at(fresh, cantilever, np.array([1000.0]), _load(fresh))
     assert fresh.factorizations == 0
+
+
+def _block_and_columns(model, scene, columns=40):
+    """A block of right-hand sides solved at once and one column at a time, and the
+    factor's ICNTL(27) (the block MUMPS passes over its factors at a time)."""
+    clamped = model.dofs.clamped_dofs(scene.fixed)
+    _, nu = material_values(scene)
+    K = model.stiffness.constrained(model.stiffness.coefficients([1000.0], nu), clamped)
+    solver = DirectSolver(K, clamped, SolverSettings(method="direct"), SolverStats("direct"))
+    B, X = model.dofs.dense(columns), model.dofs.dense(columns)
+    B.getDenseArray()[:] = np.random.default_rng(2).standard_normal(B.getDenseArray().shape)
+    B.getDenseArray()[clamped] = 0.0
+    solver.solve_many(B, X)
+    b, x = K.createVecRight(), K.createVecRight()
+    one_by_one = np.empty_like(X.getDenseArray())
+    for j in range(columns):
+        b.array[:] = B.getDenseArray()[:, j]
+        solver.solve(b, x)
+        one_by_one[:, j] = x.array
+    return X.getDenseArray().copy(), one_by_one, solver.factor.getMumpsIcntl(27)
+
+
+def test_blocks_of_right_hand_sides_pass_over_the_factors_in_wide_blocks(cantilever, petsc_option):
+    """MUMPS's default block of 32 columns passes over the factors once per 32; ours
+    is wider (solvers.rhs_blocking) with the same answer, and a user's option wins."""
+    model = ElasticModel(cantilever, SolverSettings(method="direct"))
+    X, one_by_one, blocking = _block_and_columns(model, cantilever)
+    assert blocking == -rhs_blocking(model.dofs.num_dofs) == -512  # a few thousand DOFs: the cap
+    assert relative(X, one_by_one) < 1e-12
+    assert rhs_blocking(116_001) == 289 and rhs_blocking(1_000_000) == 33 and rhs_blocking(10**8) == 32
+    petsc_option("elasto_mat_mumps_icntl_27", 3)
+    X_user, _, blocking = _block_and_columns(model, cantilever)
+    assert blocking == 3 and relative(X_user, one_by_one) < 1e-12
 
 
 def test_cg_that_does_not_converge_is_an_error(cantilever, petsc_option):
