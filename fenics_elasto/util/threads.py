@@ -46,3 +46,12 @@ def share_cores_among_ranks(comm=MPI.COMM_WORLD) -> int | None:
         os.environ[name] = str(threads)
     threadpool_limits(limits=threads, user_api="blas")
     return threads
+
+
+def threads_per_rank(comm=MPI.COMM_WORLD) -> int:
+    """How many threads this rank's own parallel loops may run: the user's thread count
+    if set (OMP_NUM_THREADS, ...), else its share of the cores on this node."""
+    for name in USER_SETTINGS:
+        if os.environ.get(name, "").isdigit():
+            return max(1, int(os.environ[name]))
+    return max(1, len(os.sched_getaffinity(0)) // ranks_on_this_node(comm))

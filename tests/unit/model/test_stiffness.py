@@ -86,11 +86,13 @@ def test_the_kernel_flags_change_round_off_only_and_yield_to_the_users(scenes, m
     assert stiffness.kernel_options() == {}
 
 
-def test_block_products_equal_the_matrix_product_column_by_column(phantom_p1):
+@pytest.mark.parametrize("threads", ["1", "2", "3"])
+def test_block_products_equal_the_matrix_product_column_by_column(phantom_p1, threads, monkeypatch):
     """times_block, by every path it takes (one rank: a wide row-major block through
-    scipy; a column-major block, as PETSc's dense arrays are, and a narrow one through
-    PETSc, MULTIPLY_COLUMNS at a time): PETSc's own matrix-vector product, column for
-    column, in the block's memory order."""
+    scipy, in slabs of rows on this many threads; a column-major block, as PETSc's dense
+    arrays are, and a narrow one through PETSc, MULTIPLY_COLUMNS at a time): PETSc's own
+    matrix-vector product, column for column, in the block's memory order."""
+    monkeypatch.setenv("OMP_NUM_THREADS", threads)
     from fenics_elasto.model.dofs import MULTIPLY_COLUMNS, SCIPY_COLUMNS, times_block
 
     model = ElasticModel(phantom_p1)
