@@ -70,11 +70,11 @@ class Profile:
         """J(theta) in full (one factorization); a snapshot for the surrogate."""
         if self.surrogate is None:
             return self.problem.response(theta, self.basis)
-        forward = self.problem.forward
-        X = response_block(forward, theta, self.basis)
+        X = response_block(self.problem.forward, theta, self.basis)
         order = 2 if len(self.params) <= 2 else 1  # second order: 1 + n + n(n+1)/2 fields per mode
-        self.surrogate.add(theta, X, response_sensitivities(forward, theta, X, order))
-        return self.problem.states.stack_controls(self.problem.observation.rows(X))
+        J = self.problem.states.stack_controls(self.problem.observation.rows(X))
+        self.surrogate.add(theta, X, response_sensitivities(self.problem.forward, theta, X, order))  # over X's memory
+        return J
 
     def surrogate_response(self, theta) -> tuple[np.ndarray, np.ndarray]:
         """(J, dJ/dtheta) on the surrogate, every state's rows and controls."""

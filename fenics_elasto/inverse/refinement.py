@@ -48,15 +48,31 @@ def refine(surrogate: MaterialSurrogate, theta, factors, q=None, tol: float = RE
         if step == maxiter or (last is not None and _over_budget(surrogate.comm, start, step, worst / last, worst, budget)):
             return None
         last = worst
-        kept = np.hstack([block for block, size in zip(R, relative) if size > tol])
-        B = surrogate.problem.model.dofs.dense(kept.shape[1])
-        B.getDenseArray()[:] = kept
-        Z = surrogate.problem.model.dofs.dense(kept.shape[1])
-        factors.apply_factors(B, Z)
-        surrogate.extend(Z.getDenseArray().copy())
-        B.destroy()
-        Z.destroy()
+        kept = [block for block, size in zip(R, relative) if size > tol]
+        del R  # the residuals are the estimate's largest blocks after V: freed as soon as they are used
+        surrogate.extend([_preconditioned(surrogate, factors, kept)])
     return None
+
+
+def _preconditioned(surrogate: MaterialSurrogate, factors, blocks: list[np.ndarray]) -> np.ndarray:
+    """F^-1 [blocks] through the factors, row-major. Takes the blocks over (the list is
+    emptied): each is freed once in PETSc's column-major block, which goes before the
+    solution is copied out."""
+    dofs = surrogate.problem.model.dofs
+    width = sum(block.shape[1] for block in blocks)
+    B, Z = dofs.dense(width), dofs.dense(width)
+    start = 0
+    while blocks:
+        block = blocks.pop(0)
+        B.getDenseArray()[:, start:start + block.shape[1]] = block
+        start += block.shape[1]
+    del block
+    factors.apply_factors(B, Z)
+    B.destroy()
+    out = Z.getDenseArray().copy()
+    Z.destroy()
+    return out
+
 
 def _over_budget(comm, start: float, steps: int, rate: float, worst: float, budget: float) -> bool:
     """Whether the steps still needed to bring the residual down by ``worst`` at

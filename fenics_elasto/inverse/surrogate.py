@@ -106,20 +106,51 @@ class ColumnBlocks:
         return np.vstack([block.T @ Y for block in self.blocks]) if self.blocks else np.zeros((0, *Y.shape[1:]))
 
 
-ROWS_AT_ONCE = 4096  # times_in_place: rows per product (4096 x 723 columns: a 24 MB temporary)
+ROWS_AT_ONCE = 4096  # times_over: rows per product (4096 x 723 columns: a 24 MB temporary)
 
 
-def times_in_place(Y: np.ndarray, W: np.ndarray) -> np.ndarray:
-    """Y @ W for a square W, written over Y a slab of rows at a time: the product needs no
-    block of Y's size (at rank 240 on the default phantom, 723 columns of 116k rows: 670 MB
-    of memory the estimate's peak no longer holds). Any other W, or a Y not in row order:
-    a new array."""
-    if W.shape[0] != W.shape[1] or not Y.flags.c_contiguous:
-        return Y @ W
-    for start in range(0, len(Y), ROWS_AT_ONCE):
-        rows = Y[start:start + ROWS_AT_ONCE]
-        rows[:] = rows @ W
-    return Y
+def times_over(blocks: list[np.ndarray], W: np.ndarray) -> list[np.ndarray]:
+    """[Y_1 ... Y_m] @ W written over the blocks' own memory, a slab of rows at a time:
+    no block of the product's size is made (at rank 240 on the default phantom, the first
+    snapshot's 723 columns of 116k rows: 670 MB the estimate's peak does not hold). The
+    product's columns fill the blocks in turn; it comes back as row-major blocks, views
+    of the given ones: a block left with no columns is dropped, and in the last one used
+    the rows lie packed at the start of its memory. The blocks must be row-major with the
+    same rows, and W have no more columns than they have together."""
+    rows, widths = len(blocks[0]), list[int]()
+    for block in blocks:
+        widths.append(min(block.shape[1], W.shape[1] - sum(widths)))
+    flats = [block.reshape(-1) for block in blocks]  # views: the blocks are row-major
+    for start in range(0, rows, ROWS_AT_ONCE):
+        stop = min(start + ROWS_AT_ONCE, rows)
+        product = np.hstack([block[start:stop] for block in blocks]) @ W
+        first = 0
+        for flat, width in zip(flats, widths):
+            # rows start..stop of width columns end before row stop of the block's own
+            # width begins: no row still to be read is overwritten
+            flat[start * width:stop * width] = product[:, first:first + width].reshape(-1)
+            first += width
+    return [flat[:rows * width].reshape(rows, width) for flat, width in zip(flats, widths) if width]
+
+
+def pieces_times(pieces, coefficients, Y: np.ndarray, total: np.ndarray) -> np.ndarray:
+    """total += sum_g coefficients_g M_g Y over the pieces M_g, in place (one product alive
+    at a time: at rank 240 on the default phantom a block of the mode fields is 224 MB)."""
+    for cg, M in zip(coefficients, pieces):
+        if cg != 0:
+            product = times_block(M, Y)
+            product *= cg
+            total += product
+    return total
+
+
+def pieces_sum(products: list[np.ndarray], coefficients, x: np.ndarray | None = None) -> np.ndarray:
+    """sum_g coefficients_g P_g x of kept products P_g = M_g G (x None: the P_g themselves)."""
+    total = np.zeros((len(products[0]), products[0].shape[1] if x is None else x.shape[1]))
+    for cg, P in zip(coefficients, products):
+        if cg != 0:
+            total += cg * (P if x is None else P @ x)
+    return total
 
 
 class MaterialSurrogate:
@@ -139,13 +170,12 @@ class MaterialSurrogate:
         self.free = np.ones(len(self.G), bool)
         self.free[self.forward.clamped_boundary] = False
         self.matched_G = problem.observation.rows(self.G)
-        r = self.G.shape[1]
         self.V = ColumnBlocks(len(self.G))
         self.VMV = [np.zeros((0, 0)) for _ in self.terms]
-        self.VMG = [np.zeros((0, r)) for _ in self.terms]
+        self.VMG = [np.zeros((0, self.G.shape[1])) for _ in self.terms]
         self.matched_V = problem.observation.rows(np.zeros((len(self.G), 0)))
         self.snapshots: list[np.ndarray] = []  # theta of every snapshot added
-        self._last_residuals: tuple | None = None  # ((theta, size), blocks, relative) of the latest residuals()
+        self._last_residual: tuple | None = None  # ((theta, size), relative) of the latest residuals()' first
 
     def destroy(self) -> None:
         for M in self._own:
@@ -174,29 +204,37 @@ class MaterialSurrogate:
     def add(self, theta, X: np.ndarray, sensitivities=()) -> int:
         """Add the mode fields X (owned rows, r) solved at theta, and their derivatives in
         the materials (forward.response_sensitivities: fields that vanish on the
-        boundary); returns the directions kept."""
-        Y = np.hstack([X, *sensitivities])
-        Y[:, :X.shape[1]] -= self.G  # X - G without a block of its own
+        boundary); returns the directions kept. The arrays are taken over: the space is
+        made in their memory."""
+        X -= self.G
         self.snapshots.append(np.array(theta, float))
-        return self.extend(Y)
+        return self.extend([X, *sensitivities])
 
-    def extend(self, Y: np.ndarray) -> int:
-        """Add the directions of Y (owned rows) that V does not hold yet; zero on the
+    def extend(self, blocks: list[np.ndarray]) -> int:
+        """Add the directions of the row-major blocks (owned rows; taken over, the new
+        directions are made in their memory) that V does not hold yet; zero on the
         clamped DOFs. Returns how many were kept."""
-        Y[~self.free] = 0.0
-        scale = np.sqrt(max(np.max(np.diag(self._dot(Y, Y))), 1e-300))
+        for Y in blocks:
+            Y[~self.free] = 0.0
+        squares = max(self.comm.allreduce(np.einsum("ij,ij->j", Y, Y), op=MPI.SUM).max() for Y in blocks)
         for _ in range(2 if self.V.width else 0):  # Gram-Schmidt against V, twice for round-off
-            Y -= self.V @ self._dot_V(Y)
-        s2, U = np.linalg.eigh(self._dot(Y, Y))
-        keep = s2 > (1e-10 * scale) ** 2
-        Q = times_in_place(Y, U[:, keep] / np.sqrt(s2[keep]))
-        for j, M in enumerate(self.terms):  # one product M_g Q alive at a time
-            MQ = times_block(M, Q)
-            cross = self._dot_V(MQ)
-            self.VMV[j] = np.block([[self.VMV[j], cross], [cross.T, self._dot(Q, MQ)]])
-            self.VMG[j] = np.vstack([self.VMG[j], self._dot(Q, self.MG[j])])
-        self.V.append(Q)
-        self.matched_V = np.concatenate([self.matched_V, self.problem.observation.rows(Q)], axis=2)
+            for Y in blocks:
+                Y -= self.V @ self._dot_V(Y)
+        s2, U = np.linalg.eigh(np.block([[self._dot(Yi, Yj) for Yj in blocks] for Yi in blocks]))
+        keep = s2 > 1e-20 * max(squares, 1e-300)
+        Q = times_over(blocks, U[:, keep] / np.sqrt(s2[keep]))
+        for j, M in enumerate(self.terms):  # one product M_g q alive at a time
+            crosses, QMQ = [], []
+            for q in Q:
+                Mq = times_block(M, q)
+                crosses.append(self._dot_V(Mq))
+                QMQ.append(np.vstack([self._dot(p, Mq) for p in Q]))
+            cross = np.hstack(crosses)
+            self.VMV[j] = np.block([[self.VMV[j], cross], [cross.T, np.hstack(QMQ)]])
+            self.VMG[j] = np.vstack([self.VMG[j], *(self._dot(q, self.MG[j]) for q in Q)])
+        for q in Q:
+            self.V.append(q)
+        self.matched_V = np.concatenate([self.matched_V, *(self.problem.observation.rows(q) for q in Q)], axis=2)
         return int(keep.sum())
 
     # --- evaluating
@@ -235,6 +273,8 @@ class MaterialSurrogate:
         """||K(theta)(G + V a)|| on the free DOFs relative to ||K(theta) G|| there: 0 is exact
         (the latest ``residuals`` at this theta answers: the logs quote it after ``refine``
         worked it out, 4.4 s each at rank 240)."""
+        if self._last_residual is not None and self._last_residual[0] == self._key(theta):
+            return self._last_residual[1]
         return float(self.residuals(theta)[1][0])
 
     def _key(self, theta) -> tuple[bytes, int]:  # what a residual depends on (the space only grows)
@@ -245,33 +285,24 @@ class MaterialSurrogate:
         K (G + V a) of the mode fields (r columns), and with controls ``q`` (r, or r x states)
         that of their derivatives along q, K V da_k q + D_k (G + V a) q (a column per estimated
         constant); and each one's norm relative to its load (K G; D_k (G + V a) q): 0 is exact.
-        Without ``q``, the latest call's mode-field residual at this theta on this space
-        answers (it does not depend on q)."""
-        if q is None and self._last_residuals is not None and self._last_residuals[0] == self._key(theta):
-            return self._last_residuals[1][:1], self._last_residuals[2][:1]
+        Each residual is summed in its load's block: at rank 240 a block is 224 MB."""
         c, dc, a, da = self._reduced(theta)
 
-        def on(coefficients, Y):  # sum_g coefficients_g M_g Y, the pieces times Y
-            return sum(cg * times_block(M, Y) for cg, M in zip(coefficients, self.terms) if cg != 0)
-
-        def on_G(coefficients, x):  # sum_g coefficients_g (M_g G) x, from the kept M_g G
-            return sum(cg * (MG @ x) for cg, MG in zip(coefficients, self.MG) if cg != 0)
+        def residual(load, Y):  # load + K(theta) Y on the free DOFs, and its size relative to the load's
+            load[~self.free] = 0.0
+            size = self.comm.allreduce(np.vdot(load, load), op=MPI.SUM)
+            R = pieces_times(self.terms, c, Y, load)
+            R[~self.free] = 0.0
+            return R, np.sqrt(self.comm.allreduce(np.vdot(R, R), op=MPI.SUM) / max(size, 1e-300))
 
         Va = self.V @ a
-        pairs = [(combine(c, self.MG), on(c, Va))]
+        pairs = [residual(pieces_sum(self.MG, c), Va)]
         if q is not None:  # along q: a column per state's controls
             Q = q if q.ndim == 2 else q[:, None]
-            pairs += [(on_G(dck, Q) + on(dck, Va @ Q), on(c, self.V @ (d @ Q))) for dck, d in zip(dc, da)]
-        blocks, relative = [], []
-        for load, applied in pairs:
-            load[~self.free] = 0.0
-            R = load + applied
-            R[~self.free] = 0.0
-            blocks.append(R)
-            relative.append(np.sqrt(np.sum(self._dot(R, R).diagonal())
-                                    / max(np.sum(self._dot(load, load).diagonal()), 1e-300)))
-        self._last_residuals = (self._key(theta), blocks, np.array(relative))
-        return blocks, np.array(relative)
+            pairs += [residual(pieces_times(self.terms, dck, Va @ Q, pieces_sum(self.MG, dck, Q)), self.V @ (d @ Q))
+                      for dck, d in zip(dc, da)]
+        self._last_residual = (self._key(theta), float(pairs[0][1]))
+        return [R for R, _ in pairs], np.array([size for _, size in pairs])
 
 
 def release(surrogate: MaterialSurrogate) -> None:

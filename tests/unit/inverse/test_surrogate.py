@@ -12,7 +12,7 @@ from fenics_elasto.inverse.estimator import estimate
 from fenics_elasto.mesh.builtin import build_scene
 from fenics_elasto.inverse.objective import InverseProblem
 from fenics_elasto.model.scene import load_scene
-from fenics_elasto.inverse.surrogate import ROWS_AT_ONCE, ColumnBlocks, MaterialSurrogate, times_in_place
+from fenics_elasto.inverse.surrogate import ROWS_AT_ONCE, ColumnBlocks, MaterialSurrogate, times_over
 from fenics_elasto.model.dofs import times_block
 from fenics_elasto.model.responses import response_block, response_sensitivities
 from fenics_elasto.inverse.refinement import refine
@@ -126,7 +126,7 @@ def test_sensitivities_are_derivatives_of_the_mode_fields(inclusion):
                  + response_block(problem.forward, theta - step, W)) / h**2
     assert relative_error(second_EE, curvature) < 1e-3  # the O(h^2) of the central difference
     seeded = MaterialSurrogate(problem, W)
-    seeded.add(theta, X, response_sensitivities(problem.forward, theta, X, order=2))
+    seeded.add(theta, X.copy(), response_sensitivities(problem.forward, theta, X, order=2))  # add takes X over
     plain = MaterialSurrogate(problem, W)
     plain.add(theta, X)
     for E in (5.0, 80.0):
@@ -184,7 +184,7 @@ def test_refined_on_nearby_factors_it_is_a_full_solve(inclusion):
     theta0, theta1 = at(problem, 20.0, 0.3), at(problem, 45.0, 0.36)
     X0 = response_block(forward, theta0, W)
     surrogate = MaterialSurrogate(problem, W)
-    surrogate.add(theta0, X0, response_sensitivities(forward, theta0, X0, order=2))
+    surrogate.add(theta0, X0.copy(), response_sensitivities(forward, theta0, X0, order=2))  # add takes X0 over
     before = problem.model.factorizations
     factors = problem.model.solvers.closest(forward.coefficients(theta1)[0], forward.clamped_boundary)
     q = np.random.default_rng(2).standard_normal(W.shape[1])
@@ -197,7 +197,7 @@ def test_refined_on_nearby_factors_it_is_a_full_solve(inclusion):
     print(f"residuals before {start}, {steps} steps")
     assert steps is not None and 0 < steps <= 14 and np.all(start > 1e-6)
     dear = MaterialSurrogate(problem, W)  # a factorization cheaper than what refining still needs: it stops
-    dear.add(theta0, X0, response_sensitivities(forward, theta0, X0, order=2))
+    dear.add(theta0, X0.copy(), response_sensitivities(forward, theta0, X0, order=2))
     assert refine(dear, theta1, factors, q, tol=1e-9, budget=0.0) is None and dear.residuals(theta1, q)[1].max() > 1e-9
     assert relative_error(J, problem.observation.rows(X1)) < 1e-7
     for k in range(2):
@@ -223,17 +223,22 @@ def test_column_blocks_multiply_as_the_matrix_they_hold():
     assert np.allclose(V.transposed_times(Y), whole.T @ Y, rtol=0, atol=1e-13)
 
 
-def test_the_product_in_place_is_the_product():
-    """times_in_place: Y @ W over Y's own memory, slab by slab (more rows than one slab,
-    and a last slab shorter); a W that is not square gets a new array."""
+def test_the_product_over_the_blocks_is_the_product():
+    """times_over: [Y_1 Y_2 Y_3] @ W over the blocks' own memory, slab by slab (more rows
+    than one slab, and a last slab shorter): as many columns as the blocks have, fewer
+    (the last block used narrower, packed in its memory), and fewer than the first block
+    holds (the others dropped)."""
     rng = np.random.default_rng(3)
-    Y = rng.standard_normal((2 * ROWS_AT_ONCE + 123, 7))
-    W, wide = rng.standard_normal((7, 7)), rng.standard_normal((7, 9))
-    expected, original = Y @ W, Y.copy()
-    out = times_in_place(Y, W)
-    assert out is Y and np.allclose(out, expected, rtol=0, atol=1e-12)
-    other = times_in_place(original, wide)
-    assert other is not original and np.allclose(other, original @ wide, rtol=0, atol=1e-12)
+    rows = 2 * ROWS_AT_ONCE + 123
+    for columns in (12, 9, 3):
+        blocks = [rng.standard_normal((rows, width)) for width in (5, 4, 3)]
+        W = rng.standard_normal((12, columns))
+        expected, memory = np.hstack(blocks) @ W, [block.__array_interface__["data"][0] for block in blocks]
+        out = times_over(blocks, W)
+        assert np.allclose(np.hstack(out), expected, rtol=0, atol=1e-12)
+        assert [q.shape[1] for q in out] == {12: [5, 4, 3], 9: [5, 4], 3: [3]}[columns]
+        assert all(q.flags.c_contiguous for q in out)
+        assert [q.__array_interface__["data"][0] for q in out] == memory[:len(out)]  # no new block
 
 
 def test_affine_pieces_sum_to_the_stiffness(inclusion):
