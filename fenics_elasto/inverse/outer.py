@@ -149,8 +149,7 @@ def minimize_on_surrogate(profile: Profile, surrogate: SurrogateProfile, xtol: n
         x0 = start if start is not None and rounds == 1 else params.to_s(profile.best_theta())
         x, evaluations = surrogate_minimum(surrogate, x0, xtol, scanned if rounds == 1 else (), smooth)
         theta = params.to_theta(x)
-        log.info(f"  surrogate optimum {params.describe(theta)}  (equation residual "
-                 f"{profile.surrogate.residual(theta):.1e}, {evaluations} evaluations)")
+        log.info(f"  surrogate optimum {params.describe(theta)}  ({evaluations} evaluations)")
         within = xtol if settled_within is None else settled_within(xtol)
         if any(np.all(np.abs(x - s) < within) for s, _, stage in profile.solved if stage != LOOSE):
             return rounds

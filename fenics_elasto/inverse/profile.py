@@ -135,12 +135,12 @@ class Profile:
         more = refine(self.surrogate, theta, factors, controls, DERIVATIVE_TOL)  # the derivative along the optimum's controls
         if more is None:
             return None
-        log.info(f"  surrogate refined at {self.params.describe(theta)} on nearby factors ({steps} + {more} block "
-                 f"back-solves, equation residual {self.surrogate.residual(theta):.1e}): no factorization")
+        log.info(f"  surrogate refined at {self.params.describe(theta)} on nearby factors ({steps} + {more} block back-"
+                 f"solves, equation residual {self.surrogate.residuals.first(theta):.1e} -> "
+                 f"{self.surrogate.residuals.modes(theta):.1e}): no factorization")
         J, dJ = self.surrogate_response(theta)
-        # The same optimum on the space the derivatives grew (J moved by the refinement's
-        # tolerance): from the first fit's controls, a few iterations instead of a second
-        # fit from q0 (rank 240 on the default phantom: 67 iterations -> 2).
+        # The same optimum on the space the derivatives grew (J moved by the refinement's tolerance):
+        # from the first fit's controls, a few iterations, not a second fit from q0 (rank 240: 67 -> 2).
         fit = self.inner.fit(J, first.q)
         fields, owned, modes = [], self.surrogate.G.shape[0], self.surrogate.fields(theta)
         for q in self.problem.states.split(fit.q):

@@ -41,7 +41,8 @@ def refine(surrogate: MaterialSurrogate, theta, factors, q=None, tol: float = RE
     would take longer than ``budget`` seconds (a factorization's: then it is cheaper)."""
     start, last = time.perf_counter(), None
     for step in range(maxiter + 1):
-        R, relative = surrogate.residuals(theta, q)
+        settled = surrogate.residuals.known(theta)  # the mode fields' on this space, if worked out
+        R, relative = surrogate.residuals.blocks(theta, q, modes=q is None or settled is None or settled > tol)
         worst = float(np.max(relative)) / tol
         if worst <= 1:
             return step

@@ -200,7 +200,7 @@ class MaterialSurrogate:
         self.VMG = [np.zeros((0, self.G.shape[1])) for _ in self.terms]
         self.matched_V = problem.observation.rows(np.zeros((len(self.G), 0)))
         self.snapshots: list[np.ndarray] = []  # theta of every snapshot added
-        self._last_residual: tuple | None = None  # ((theta, size), relative) of the latest residuals()' first
+        self.residuals = EquationResiduals(self)
 
     def destroy(self) -> None:
         for M in self._own:
@@ -294,39 +294,59 @@ class MaterialSurrogate:
         """G + V a(theta): the surrogate's mode fields (owned rows, r)."""
         return self.G.add_to(self.V @ self.coefficients(theta))
 
-    def residual(self, theta) -> float:
-        """||K(theta)(G + V a)|| on the free DOFs relative to ||K(theta) G|| there: 0 is exact
-        (the latest ``residuals`` at this theta answers: the logs quote it after ``refine``
-        worked it out, 4.4 s each at rank 240)."""
-        if self._last_residual is not None and self._last_residual[0] == self._key(theta):
-            return self._last_residual[1]
-        return float(self.residuals(theta)[1][0])
+
+class EquationResiduals:
+    """How far a surrogate's fields are from solving the equations at theta, on the free
+    DOFs: K (G + V a) of the mode fields and, along controls q, that of their derivatives,
+    K V da_k q + D_k (G + V a) q; each relative to its load (K G; D_k (G + V a) q), 0 exact.
+    The mode fields' is remembered per theta and size of the space: at rank 240 on the
+    default phantom it costs ~1 s (V times r columns, the pieces times that)."""
+
+    def __init__(self, surrogate: MaterialSurrogate):
+        self.surrogate = surrogate
+        self.of_modes: dict[tuple[bytes, int], float] = {}  # (theta, size of the space) -> relative residual
 
     def _key(self, theta) -> tuple[bytes, int]:  # what a residual depends on (the space only grows)
-        return np.asarray(theta, float).tobytes(), self.size
+        return np.asarray(theta, float).tobytes(), self.surrogate.size
 
-    def residuals(self, theta, q=None) -> tuple[list[np.ndarray], np.ndarray]:
-        """The equations' residuals on the free DOFs (owned rows, zero on the clamped DOFs):
-        K (G + V a) of the mode fields (r columns), and with controls ``q`` (r, or r x states)
-        that of their derivatives along q, K V da_k q + D_k (G + V a) q (a column per estimated
-        constant); and each one's norm relative to its load (K G; D_k (G + V a) q): 0 is exact.
-        Each residual is summed in its load's block: at rank 240 a block is 224 MB."""
-        c, dc, a, da = self._reduced(theta)
+    def known(self, theta) -> float | None:
+        """The mode fields' residual at theta on the space as it is, if worked out."""
+        return self.of_modes.get(self._key(theta))
+
+    def modes(self, theta) -> float:
+        """The mode fields' residual at theta on the space as it is (remembered, or worked out)."""
+        known = self.known(theta)
+        return known if known is not None else float(self.blocks(theta)[1][0])
+
+    def first(self, theta) -> float | None:
+        """The mode fields' residual at theta on the smallest space it was worked out on."""
+        at = self._key(theta)[0]
+        sizes = [size for point, size in self.of_modes if point == at]
+        return self.of_modes[at, min(sizes)] if sizes else None
+
+    def blocks(self, theta, q=None, modes: bool = True) -> tuple[list[np.ndarray], np.ndarray]:
+        """The residuals (owned rows, zero on the clamped DOFs) and their relative sizes:
+        the mode fields' (r columns; left out unless ``modes``), then with controls ``q``
+        (r, or r x states) a column per estimated constant. Each is summed in its load's
+        block (at rank 240 a block of the mode fields is 224 MB)."""
+        s = self.surrogate
+        c, dc, a, da = s._reduced(theta)
 
         def residual(load, Y):  # load + K(theta) Y on the free DOFs, and its size relative to the load's
-            load[~self.free] = 0.0
-            size = self.comm.allreduce(np.vdot(load, load), op=MPI.SUM)
-            R = pieces_times(self.terms, c, Y, load)
-            R[~self.free] = 0.0
-            return R, np.sqrt(self.comm.allreduce(np.vdot(R, R), op=MPI.SUM) / max(size, 1e-300))
+            load[~s.free] = 0.0
+            size = s.comm.allreduce(np.vdot(load, load), op=MPI.SUM)
+            R = pieces_times(s.terms, c, Y, load)
+            R[~s.free] = 0.0
+            return R, np.sqrt(s.comm.allreduce(np.vdot(R, R), op=MPI.SUM) / max(size, 1e-300))
 
-        Va = self.V @ a
-        pairs = [residual(pieces_sum(self.MG, c), Va)]
+        pairs = []
+        if modes:
+            pairs.append(residual(pieces_sum(s.MG, c), s.V @ a))
+            self.of_modes[self._key(theta)] = float(pairs[0][1])
         if q is not None:  # along q: a column per state's controls
             Q = q if q.ndim == 2 else q[:, None]
-            pairs += [residual(pieces_times(self.terms, dck, Va @ Q, pieces_sum(self.MG, dck, Q)), self.V @ (d @ Q))
+            pairs += [residual(pieces_times(s.terms, dck, s.V @ (a @ Q), pieces_sum(s.MG, dck, Q)), s.V @ (d @ Q))
                       for dck, d in zip(dc, da)]
-        self._last_residual = (self._key(theta), float(pairs[0][1]))
         return [R for R, _ in pairs], np.array([size for _, size in pairs])
 
 

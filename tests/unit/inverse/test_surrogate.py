@@ -59,13 +59,13 @@ def test_exact_at_snapshots_and_converging_between(inclusion):
             surrogate.add(theta, response_block(problem.forward, theta, W))
             J, _ = surrogate.response(theta)
             assert relative_error(J, problem.response(theta, W)) < 1e-8  # round-off of up to 36 directions
-            assert surrogate.residual(theta) < 1e-8
+            assert surrogate.residuals.modes(theta) < 1e-8
             errors.append(energy_norm(problem, probe, surrogate.fields(probe) - truth))
     errors = np.array(errors) / energy_norm(problem, probe, truth)
     print("relative energy error at the probe after each snapshot:", errors)
     assert np.all(np.diff(errors) <= 1e-9) and errors[-1] < 1e-2, errors
     assert relative_error(surrogate.response(probe)[0], problem.observation.rows(truth)) < 3e-3  # measured 1.0e-3
-    assert surrogate.residual(probe) < 1e-2  # the indicator is small where the error is
+    assert surrogate.residuals.modes(probe) < 1e-2  # the indicator is small where the error is
 
 
 def test_derivatives_are_those_of_the_surrogate(inclusion):
@@ -188,7 +188,7 @@ def test_refined_on_nearby_factors_it_is_a_full_solve(inclusion):
     before = problem.model.factorizations
     factors = problem.model.solvers.closest(forward.coefficients(theta1)[0], forward.clamped_boundary)
     q = np.random.default_rng(2).standard_normal(W.shape[1])
-    start = surrogate.residuals(theta1, q)[1]
+    start = surrogate.residuals.blocks(theta1, q)[1]
     steps = refine(surrogate, theta1, factors, q, tol=1e-9)
     J, dJ = surrogate.response(theta1)
     assert problem.model.factorizations == before
@@ -198,13 +198,16 @@ def test_refined_on_nearby_factors_it_is_a_full_solve(inclusion):
     assert steps is not None and 0 < steps <= 14 and np.all(start > 1e-6)
     dear = MaterialSurrogate(problem, W)  # a factorization cheaper than what refining still needs: it stops
     dear.add(theta0, X0.copy(), response_sensitivities(forward, theta0, X0, order=2))
-    assert refine(dear, theta1, factors, q, tol=1e-9, budget=0.0) is None and dear.residuals(theta1, q)[1].max() > 1e-9
+    assert refine(dear, theta1, factors, q, tol=1e-9, budget=0.0) is None and dear.residuals.blocks(theta1, q)[1].max() > 1e-9
     assert relative_error(J, problem.observation.rows(X1)) < 1e-7
     for k in range(2):
         assert relative_error(dJ[k] @ q, problem.observation.rows(dX1[k]) @ q) < 1e-7, k
-    remembered = surrogate.residual(theta1)  # the refinement's last, as the log quotes it
-    surrogate._last_residuals = None
-    assert remembered == surrogate.residual(theta1) < 1e-9
+    remembered = surrogate.residuals.modes(theta1)  # the refinement's last, as the log quotes it
+    assert surrogate.residuals.first(theta1) == start[0]  # before refining, as the log quotes it
+    with_modes = surrogate.residuals.blocks(theta1, q)[1]
+    surrogate.residuals.of_modes.clear()
+    assert remembered == surrogate.residuals.modes(theta1) < 1e-9
+    assert np.array_equal(surrogate.residuals.blocks(theta1, q, modes=False)[1], with_modes[1:])  # derivatives alone
 
 
 def test_column_blocks_multiply_as_the_matrix_they_hold():
