@@ -3,6 +3,7 @@ clamped DOFs, and dense blocks in the space's row layout."""
 
 from __future__ import annotations
 
+import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import cache
@@ -78,6 +79,9 @@ def _csr_times(csr, columns: int, Y: np.ndarray) -> np.ndarray:
 @cache
 def _pool(threads: int) -> ThreadPoolExecutor:
     return ThreadPoolExecutor(threads, thread_name_prefix="times_block")
+
+
+os.register_at_fork(after_in_child=_pool.cache_clear)  # a forked child has none of the pool's threads
 
 
 def unrolled(blocks: np.ndarray, bs: int) -> np.ndarray:
