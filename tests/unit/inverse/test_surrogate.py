@@ -12,7 +12,8 @@ from fenics_elasto.inverse.estimator import estimate
 from fenics_elasto.mesh.builtin import build_scene
 from fenics_elasto.inverse.objective import InverseProblem
 from fenics_elasto.model.scene import load_scene
-from fenics_elasto.inverse.surrogate import ROWS_AT_ONCE, ColumnBlocks, MaterialSurrogate, times_over
+from fenics_elasto.inverse.surrogate import (ROWS_AT_ONCE, ColumnBlocks, MaterialSurrogate, RowBlock, symmetric_blocks,
+                                             times_over)
 from fenics_elasto.model.dofs import times_block
 from fenics_elasto.model.responses import response_block, response_sensitivities
 from fenics_elasto.inverse.refinement import refine
@@ -242,6 +243,40 @@ def test_the_product_over_the_blocks_is_the_product():
         assert [q.shape[1] for q in out] == {12: [5, 4, 3], 9: [5, 4], 3: [3]}[columns]
         assert all(q.flags.c_contiguous for q in out)
         assert [q.__array_interface__["data"][0] for q in out] == memory[:len(out)]  # no new block
+
+
+def test_a_row_block_acts_as_the_dense_block_it_was_made_from():
+    """RowBlock keeps only the nonzero rows; adding it (scaled, times x) and products with
+    it from the left equal the dense block's."""
+    rng = np.random.default_rng(4)
+    dense = np.zeros((300, 6))
+    rows = rng.choice(300, 40, replace=False)
+    dense[rows] = rng.standard_normal((40, 6))
+    block = RowBlock(dense)
+    assert len(block) == 300 and block.shape == (300, 6) and sorted(block.rows) == sorted(rows)
+    out, x, Y = rng.standard_normal((300, 6)), rng.standard_normal((6, 2)), rng.standard_normal((300, 3))
+    assert np.allclose(block.add_to(out.copy(), -2.0), out - 2.0 * dense, rtol=0, atol=1e-14)
+    assert np.allclose(block.add_to(np.zeros((300, 2)), 1.5, x), 1.5 * dense @ x, rtol=0, atol=1e-14)
+    assert np.allclose(block.under(Y), Y.T @ dense, rtol=0, atol=1e-13)
+    assert len(RowBlock(np.zeros((300, 6))).rows) == 0
+
+
+def test_symmetric_blocks_are_the_whole_product():
+    """symmetric_blocks: the upper half worked out, the lower mirrored, equals [Y_a^T M Y_b]
+    for a symmetric M; right(b) is called once per b, in order."""
+    rng = np.random.default_rng(5)
+    blocks = [rng.standard_normal((200, width)) for width in (4, 3, 5)]
+    A = rng.standard_normal((200, 200))
+    M = A + A.T
+    called = []
+
+    def right(b):
+        called.append(b)
+        return M @ blocks[b]
+
+    whole = symmetric_blocks(blocks, right, lambda X, Y: X.T @ Y)
+    assert called == [0, 1, 2]
+    assert np.allclose(whole, np.hstack(blocks).T @ M @ np.hstack(blocks), rtol=0, atol=1e-10)
 
 
 def test_affine_pieces_sum_to_the_stiffness(inclusion):
