@@ -60,14 +60,12 @@ def _preconditioned(surrogate: MaterialSurrogate, factors, blocks: list[np.ndarr
     emptied): each is freed once in PETSc's column-major block, which goes before the
     solution is copied out."""
     dofs = surrogate.problem.model.dofs
-    width = sum(block.shape[1] for block in blocks)
-    B, Z = dofs.dense(width), dofs.dense(width)
+    widths = [block.shape[1] for block in blocks]
+    B, Z = dofs.dense(sum(widths)), dofs.dense(sum(widths))
     start = 0
-    while blocks:
-        block = blocks.pop(0)
-        B.getDenseArray()[:, start:start + block.shape[1]] = block
-        start += block.shape[1]
-    del block
+    for width in widths:
+        B.getDenseArray()[:, start:start + width] = blocks.pop(0)
+        start += width
     factors.apply_factors(B, Z)
     B.destroy()
     out = Z.getDenseArray().copy()
