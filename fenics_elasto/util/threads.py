@@ -41,7 +41,7 @@ def share_cores_among_ranks(comm=MPI.COMM_WORLD) -> int | None:
     ranks = ranks_on_this_node(comm)
     if ranks == 1 or any(name in os.environ for name in USER_SETTINGS):
         return None
-    threads = max(1, len(os.sched_getaffinity(0)) // ranks)
+    threads = _core_share(ranks)
     for name in USER_SETTINGS:
         os.environ[name] = str(threads)
     threadpool_limits(limits=threads, user_api="blas")
@@ -54,4 +54,9 @@ def threads_per_rank(comm=MPI.COMM_WORLD) -> int:
     for name in USER_SETTINGS:
         if os.environ.get(name, "").isdigit():
             return max(1, int(os.environ[name]))
-    return max(1, len(os.sched_getaffinity(0)) // ranks_on_this_node(comm))
+    return _core_share(ranks_on_this_node(comm))
+
+
+def _core_share(ranks: int) -> int:
+    """This rank's share of the cores it may run on, with ``ranks`` on the node."""
+    return max(1, len(os.sched_getaffinity(0)) // ranks)
