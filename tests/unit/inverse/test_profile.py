@@ -132,6 +132,36 @@ def test_the_outer_loop_ends_where_the_optimum_settles_within_its_tolerance():
     assert abs(float(settled.best_theta()[0]) - 55.0) < 1e-3 * 55.0
 
 
+class _FlatProfile(_CreepingProfile):
+    """Phi*(s) = (s - m)^4 around E = 55: flat at its minimum, where L-BFGS-B creeps by
+    steps that shrink by a constant factor (as on a rough target's jagged Phi*)."""
+
+    def on_surrogate(self):
+        calls = []
+
+        def value_and_gradient(s):
+            calls.append(float(s[0]))
+            return float((s[0] - self.minimum) ** 4), np.array([4.0 * (s[0] - self.minimum) ** 3])
+
+        return SimpleNamespace(params=self.params, profile=self, value_and_gradient=value_and_gradient, calls=calls)
+
+
+def test_the_surrogate_minimum_is_placed_to_the_tolerance_that_ends_the_loop():
+    """On a non-smooth Phi* (bounded L-BFGS-B) the surrogate's minimum is placed to the
+    share of sigma that settles the loop, not to xtol: fewer inner fits for the same
+    answer within that share."""
+    xtol = np.array([1e-3])
+    counts = {}
+    for share in (1.0, 10.0):  # settled_within: xtol itself, or 10 xtol (a twentieth of a 20 % sigma)
+        profile = _FlatProfile()
+        surrogate = profile.on_surrogate()
+        minimize_on_surrogate(profile, surrogate, xtol, 1, smooth=False, settled_within=lambda x: share * x)
+        counts[share] = len(surrogate.calls)
+        placed = float(profile.solved[-1][0][0])  # the surrogate's optimum, solved in full
+        assert abs(placed - np.log(55.0)) < share * xtol[0], (share, placed)
+    assert counts[10.0] <= 0.7 * counts[1.0], counts  # measured 18 against 27
+
+
 @pytest.mark.parametrize("noise_std, within", [(0.01, 1e-3), (0.048, SETTLE_SHARE * 0.048),
                                                (1.0, SETTLE_REACH * 1e-3), (None, 1e-3)])
 def test_the_outer_loop_settles_within_a_share_of_the_noise_std(noise_std, within):
