@@ -16,9 +16,12 @@ adds one kind of data:
 - a displacement field: 20,000 vertices of the truth's mesh with their displacement and
   a smooth 1 % error, noise stated.
 
-    .venv/bin/python benchmarks/more_than_surfaces_3d.py [--out DIR] [--set KEY=VALUE ...]
+    .venv/bin/python benchmarks/more_than_surfaces_3d.py [--out DIR] [--set KEY=VALUE ...] [--noise STD]
 
 ``--set``: added to every row's estimate (e.g. optimizer.matched_motion='auto').
+``--noise STD``: every state's organ surfaces with Gaussian noise of STD cm on every
+point, each state its own draw (a segmentation's error: 0.05 is half a millimetre, a
+voxel of fine MR), so that the data's noise, not the source mesh, leads sigma.
 """
 
 from __future__ import annotations
@@ -51,9 +54,21 @@ def noisy_field(path: Path, out: Path, share: float) -> tuple[Path, float]:
     return out, std
 
 
+GROUPS = ("bladder", "prostate_surface", "rectum")
+
+
+def segmented(files: dict, out: Path, std: float, seed: int) -> dict:
+    """``files`` with each organ surface replaced by a copy with Gaussian noise of ``std``."""
+    if not std:
+        return files
+    rng = np.random.default_rng(seed)
+    out.mkdir(parents=True, exist_ok=True)
+    return {**files, **{g: ind.noisy_copy(files[g], out / f"{g}.vtp", std, rng) for g in GROUPS}}
+
+
 def rows(filled: dict, emptied: dict, probe: dict, out: Path) -> dict[str, list[str]]:
     surfaces = lambda files: "surfaces={" + ", ".join(  # noqa: E731
-        f"{g}='{files[g]}'" for g in ("bladder", "prostate_surface", "rectum")) + "}"
+        f"{g}='{files[g]}'" for g in GROUPS) + "}"
     force = np.array(json.loads(Path(filled["forces"]).read_text())["rectum"])
     noise = 0.02 * float(np.linalg.norm(force))
     field, field_std = noisy_field(Path(filled["field"]), out / "field_noisy.vtp", 0.01)
@@ -73,7 +88,7 @@ def rows(filled: dict, emptied: dict, probe: dict, out: Path) -> dict[str, list[
     }
 
 
-def run(out: Path, extra: list[str], only: list[str]) -> None:
+def run(out: Path, extra: list[str], only: list[str], noise: float = 0.0) -> None:
     out.mkdir(parents=True, exist_ok=True)
     problem = ind.plain_source(out / "sources", 2)
     bases = problem.parent / "bases.npz"
@@ -82,6 +97,12 @@ def run(out: Path, extra: list[str], only: list[str]) -> None:
     filled = ind.phantom(out / "truth", TRUTH, field=20000)
     emptied = ind.phantom(out / "truth", TRUTH, state="emptied")
     probe = ind.phantom(out / "truth", TRUTH, state="probe")
+    if noise:  # each state its own draw
+        filled, emptied, probe = (segmented(files, out / f"segmented_{noise:g}" / state, noise, seed)
+                                  for seed, (state, files) in enumerate(
+                                      (("filled", filled), ("emptied", emptied), ("probe", probe))))
+        out = out / f"noise_{noise:g}"
+        out.mkdir(parents=True, exist_ok=True)
     table, base = [], None
     for name, sets in rows(filled, emptied, probe, out).items():
         if only and name not in only:
@@ -112,5 +133,6 @@ if __name__ == "__main__":
     parser.add_argument("--out", type=Path, default=Path("out/more_than_surfaces_3d"))
     parser.add_argument("--set", action="append", default=[], help="extra --set for every estimate")
     parser.add_argument("--row", action="append", default=[], help="run only this row (by its name; repeatable)")
+    parser.add_argument("--noise", type=float, default=0.0, help="segmentation noise on every target surface, cm")
     options = parser.parse_args()
-    run(options.out, options.set, options.row)
+    run(options.out, options.set, options.row, options.noise)

@@ -155,7 +155,7 @@ def test_the_surrogate_minimum_is_placed_to_the_tolerance_that_ends_the_loop():
     for share in (1.0, 10.0):  # settled_within: xtol itself, or 10 xtol (a twentieth of a 20 % sigma)
         profile = _FlatProfile()
         surrogate = profile.on_surrogate()
-        minimize_on_surrogate(profile, surrogate, xtol, 1, smooth=False, settled_within=lambda x: share * x)
+        minimize_on_surrogate(profile, surrogate, xtol, 1, smooth=False, settled_within=lambda x, share=share: share * x)
         counts[share] = len(surrogate.calls)
         placed = float(profile.solved[-1][0][0])  # the surrogate's optimum, solved in full
         assert abs(placed - np.log(55.0)) < share * xtol[0], (share, placed)
