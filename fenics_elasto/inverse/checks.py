@@ -9,7 +9,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from fenics_elasto.util.errors import UserError, require
+from fenics_elasto.inverse.displacement_field import correlated_over
 from fenics_elasto.inverse.inner import InnerResult
+from fenics_elasto.inverse.misfit import FieldTerm
 from fenics_elasto.geometry.targets import SurfaceTerm
 from fenics_elasto.inverse.objective import InverseProblem
 from fenics_elasto.inverse.options import Options
@@ -122,10 +124,27 @@ def target_warnings(problem: InverseProblem, best: InnerResult, state_noise: str
     states = problem.states
     distances = states.distances(best.evaluation.residual)
     out = []
-    for name, misfit, spec in zip(states.names, states.misfits, states.specs):
+    for name, misfit, spec, rows in zip(states.names, states.misfits, states.specs,
+                                        states.split(best.evaluation.residual)):
         state = f"state {name}: " if states.count > 1 else ""
-        out += [state + line for line in _distance_warnings(misfit, spec, distances[name])]
+        out += [state + line for line in _distance_warnings(misfit, spec, distances[name]) + _field_warnings(misfit, rows)]
     return out + _unequal_states(problem, distances, state_noise)
+
+
+def _field_warnings(misfit, residual: np.ndarray) -> list[str]:
+    """A displacement field whose residual at the answer is one error over cubes wider
+    than the cells its samples were counted in (displacement_field.correlated_over)."""
+    out = []
+    for rows, term in zip(misfit.slices, misfit.terms):
+        if not isinstance(term, FieldTerm) or term.cell <= 0:
+            continue
+        length = correlated_over(term.points, residual[rows], term.cell)
+        if length is not None:
+            out.append(f"the displacement field's residual is one error over cubes of {length:.3g} ({length / term.cell:.0f}x "
+                       f"the cells of {term.cell:.3g} each counted as an independent observation): the interval counts "
+                       "that error too often and may be too narrow; set [target] displacement_correlation to the "
+                       f"field's correlation length (at least {length:.3g})")
+    return out
 
 
 def _unequal_states(problem: InverseProblem, distances: dict[str, dict], state_noise: str) -> list[str]:

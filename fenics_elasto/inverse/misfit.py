@@ -48,8 +48,12 @@ class PointTerm:
         return np.broadcast_to(np.eye(y.shape[1]), y.shape + (y.shape[1],)).copy()
 
 
+@dataclass
 class FieldTerm(PointTerm):
-    """Rows of a displacement field's samples: each observed where it moved to."""
+    """Rows of a displacement field's samples: each observed where it moved to, each
+    standing for a cube of side ``cell`` (displacement_field.observed_samples)."""
+
+    cell: float = 0.0
 
 
 class Unobserved:
@@ -356,7 +360,8 @@ def build_misfit(scene, node_groups: np.ndarray, target: TargetData, before: int
         blocks.append((len(observed), PointTerm(observed), landmark_weight(spec, surfaces)))
     if target.displacement is not None:
         field = target.displacement
-        blocks.append((len(field.points), FieldTerm(field.points + field.vectors), field_weight(spec, surfaces)))
+        blocks.append((len(field.points), FieldTerm(field.points + field.vectors, field.cell),
+                       field_weight(spec, surfaces)))
     if after:
         blocks.append((after, Unobserved(), 0.0))
     return Misfit(blocks)
