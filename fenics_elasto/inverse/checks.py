@@ -140,10 +140,11 @@ def _field_warnings(misfit, residual: np.ndarray) -> list[str]:
             continue
         length = correlated_over(term.points, residual[rows], term.cell)
         if length is not None:
-            out.append(f"the displacement field's residual is one error over cubes of {length:.3g} ({length / term.cell:.0f}x "
-                       f"the cells of {term.cell:.3g} each counted as an independent observation): the interval counts "
-                       "that error too often and may be too narrow; set [target] displacement_correlation to the "
-                       f"field's correlation length (at least {length:.3g})")
+            out.append(f"the displacement field's residual is shared over cubes of {length:.3g} ({length / term.cell:.0f}x "
+                       f"the cells of {term.cell:.3g} each counted as one independent observation): a smooth error -- "
+                       "the field's own, as a registration's often is, or the model's -- counted that often can make "
+                       "the interval too narrow; if the field's error is smooth, set [target] displacement_correlation "
+                       f"to its correlation length (at least {length:.3g})")
     return out
 
 
