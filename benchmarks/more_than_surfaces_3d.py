@@ -14,7 +14,7 @@ adds one kind of data:
 - the rectum wall's total force, scikit-fem's, stated with 2 % noise, every E estimated
   (the tissue started at half its truth);
 - a displacement field: 20,000 vertices of the truth's mesh with their displacement and
-  a smooth 1 % error, noise stated.
+  a smooth 1 % error, noise stated; the same with independent 1 % noise per sample.
 
     .venv/bin/python benchmarks/more_than_surfaces_3d.py [--out DIR] [--set KEY=VALUE ...] [--noise STD]
 
@@ -42,14 +42,18 @@ from fenics_elasto.app.cli import main  # noqa: E402
 TRUTH = 50.0
 
 
-def noisy_field(path: Path, out: Path, share: float) -> tuple[Path, float]:
-    """The field with a smooth error of ``share`` x its largest displacement; (file, std)."""
+def noisy_field(path: Path, out: Path, share: float, smooth: bool = True) -> tuple[Path, float]:
+    """The field with an error of ``share`` x its largest displacement, smooth (a
+    registration's kind) or independent per sample; (file, std)."""
     import pyvista as pv
 
     cloud = pv.read(path)
     u = np.asarray(cloud["displacement"])
     std = share * float(np.linalg.norm(u, axis=1).max())
-    cloud["displacement"] = u + ind.smooth_error(np.asarray(cloud.points, float), std, spread=0.6)  # ~3-10 cm waves
+    points = np.asarray(cloud.points, float)
+    error = (ind.smooth_error(points, std, spread=0.6) if smooth  # ~3-10 cm waves
+             else std * np.random.default_rng(0).standard_normal(u.shape))
+    cloud["displacement"] = u + error
     cloud.save(out)
     return out, std
 
@@ -72,6 +76,7 @@ def rows(filled: dict, emptied: dict, probe: dict, out: Path) -> dict[str, list[
     force = np.array(json.loads(Path(filled["forces"]).read_text())["rectum"])
     noise = 0.02 * float(np.linalg.norm(force))
     field, field_std = noisy_field(Path(filled["field"]), out / "field_noisy.vtp", 0.01)
+    independent, _ = noisy_field(Path(filled["field"]), out / "field_independent.vtp", 0.01, smooth=False)
     return {
         "surfaces only": [f"target={{{surfaces(filled)}}}"],
         "+ 4 fiducials": [f"target={{{surfaces(filled)}, landmarks='{filled['fiducials']}'}}"],
@@ -85,6 +90,8 @@ def rows(filled: dict, emptied: dict, probe: dict, out: Path) -> dict[str, list[
                             "materials.tissue.E={estimate=true, initial=5.0, bounds=[0.5, 100.0]}",
                             f"boundary.measured_force.rectum={{value={force.tolist()}, noise={noise}}}"],
         "+ a field (1 %)": [f"target={{{surfaces(filled)}, displacement='{field}', displacement_noise={field_std}}}"],
+        "+ a field (1 %, independent)": [f"target={{{surfaces(filled)}, displacement='{independent}', "
+                                         f"displacement_noise={field_std}}}"],
     }
 
 
@@ -107,7 +114,7 @@ def run(out: Path, extra: list[str], only: list[str], noise: float = 0.0) -> Non
     for name, sets in rows(filled, emptied, probe, out).items():
         if only and name not in only:
             continue
-        folder = out / name.replace(" ", "_").replace("+", "plus").replace("(", "").replace(")", "").replace("%", "pc")
+        folder = out / name.replace(" ", "_").replace("+", "plus").replace("(", "").replace(")", "").replace("%", "pc").replace(",", "")
         args = ["estimate", str(problem), "--out", str(folder), "--set", f"reduction={{bases='{bases}'}}"]
         for s in sets + extra:
             args += ["--set", s]
