@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 import time
 from pathlib import Path
@@ -114,7 +115,7 @@ def run(out: Path, extra: list[str], only: list[str], noise: float = 0.0) -> Non
     for name, sets in rows(filled, emptied, probe, out).items():
         if only and name not in only:
             continue
-        folder = out / name.replace(" ", "_").replace("+", "plus").replace("(", "").replace(")", "").replace("%", "pc").replace(",", "")
+        folder = out / re.sub(r"[(),]", "", name.replace(" ", "_").replace("+", "plus").replace("%", "pc"))
         args = ["estimate", str(problem), "--out", str(folder), "--set", f"reduction={{bases='{bases}'}}"]
         for s in sets + extra:
             args += ["--set", s]
