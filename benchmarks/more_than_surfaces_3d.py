@@ -64,8 +64,6 @@ GROUPS = ("bladder", "prostate_surface", "rectum")
 
 def segmented(files: dict, out: Path, std: float, seed: int) -> dict:
     """``files`` with each organ surface replaced by a copy with Gaussian noise of ``std``."""
-    if not std:
-        return files
     rng = np.random.default_rng(seed)
     out.mkdir(parents=True, exist_ok=True)
     return {**files, **{g: ind.noisy_copy(files[g], out / f"{g}.vtp", std, rng) for g in GROUPS}}
