@@ -29,6 +29,7 @@ from fenics_elasto.util.logs import log
 from fenics_elasto.geometry.surface import Surface
 from fenics_elasto.files.images import read_label_image
 from fenics_elasto.inverse.displacement_field import DisplacementField
+from fenics_elasto.model.observation import Samples
 from fenics_elasto.files.readers import read_landmarks, read_surface
 from fenics_elasto.geometry.label_surfaces import label_surface
 from fenics_elasto.geometry.smoothing import is_rough, noise, roughness, smoothed
@@ -208,12 +209,13 @@ class TargetData:
     source: str = "target"
     spec: dict | None = None  # its [target] table (weights, noise); None: the scene's
 
-    def observed_points(self) -> np.ndarray | None:
-        """The points observed inside the body: the landmarks', then the field's (sampled:
-        displacement_field.observed_samples)."""
-        parts = [p for p in (None if self.landmarks is None else self.landmarks[0],
-                             None if self.displacement is None else self.displacement.points) if p is not None]
-        return np.concatenate(parts) if parts else None
+    def observed_inside(self) -> Samples | None:
+        """The rows observed inside the body: the landmarks', then the field's (its cubes'
+        means: displacement_field.observed_samples)."""
+        field = self.displacement
+        parts = [p for p in (None if self.landmarks is None else Samples.single(self.landmarks[0]),
+                             None if field is None else field.samples or Samples.single(field.points)) if p is not None]
+        return Samples.joined(parts) if parts else None
 
 
 def read_target(scene, spec: dict | None = None, where: str | None = None) -> TargetData:

@@ -24,7 +24,7 @@ from fenics_elasto.model.forward import BoundaryForward
 from fenics_elasto.inverse.displacement_field import observed_samples
 from fenics_elasto.inverse.states import States
 from fenics_elasto.inverse.misfit import Misfit, TargetData, build_misfit, read_targets, stacked
-from fenics_elasto.model.observation import Observation
+from fenics_elasto.model.observation import Observation, Samples
 from fenics_elasto.model.scene import Scene
 from fenics_elasto.model.responses import response_block
 
@@ -46,10 +46,6 @@ def _sampled(scene: Scene, mesh, data: TargetData) -> TargetData:
         return data
     correlation = (data.spec or scene.config["target"] or {}).get("displacement_correlation")
     return replace(data, displacement=observed_samples(data.displacement, mesh, correlation))
-
-
-def _or_none(points: np.ndarray | None, gdim: int) -> np.ndarray:
-    return np.zeros((0, gdim)) if points is None else points
 
 
 class InverseProblem:
@@ -74,9 +70,9 @@ class InverseProblem:
         targets = read_targets(scene) if target is None else [("", target)] if isinstance(target, TargetData) \
             else list(target)
         targets = [(name, _sampled(scene, self.model.dofs.V.mesh, data)) for name, data in targets]
-        own = [_or_none(data.observed_points(), self.gdim) for _, data in targets]
-        counts = [len(p) for p in own]
-        self.observation = Observation(self.model, scene, np.concatenate(own) if sum(counts) else None)
+        own = [data.observed_inside() or Samples.single(np.zeros((0, self.gdim))) for _, data in targets]
+        counts = [len(p.points) for p in own]
+        self.observation = Observation(self.model, scene, Samples.joined(own) if sum(counts) else None)
         groups = self.node_groups()
         misfits = [build_misfit(scene, groups, data, before=sum(counts[:i]), after=sum(counts[i + 1:]))
                    for i, (_, data) in enumerate(targets)]

@@ -1,17 +1,22 @@
-"""Where the model is observed: matched surface nodes and landmark points.
+"""Where the model is observed: matched surface nodes and points inside the body.
 
 The observed positions are linear in the displacement, y = y0 + O u:
 - a matched node's row picks its nodal value (on a straight-sided P2 mesh only the
   vertices are on the geometry the mesh stands for; see ``matched_vertices_only``);
 - a landmark (an implanted fiducial, any point inside the body) interpolates the
   finite-element displacement at its source point: sum_i phi_i(x) u_i over the DOFs of
-  the cell holding x.
+  the cell holding x;
+- a displacement field's observation is the mean of its samples' displacements, so its
+  row is the mean of the model at those same samples (``Samples``), not the model at
+  their mean point, which differs wherever u curves within the cube.
 
 Rows: the matched nodes first (canonical order, the same under any number of MPI
-ranks), then the landmarks (in the order given). Every rank holds all rows.
+ranks), then the points inside (in the order given). Every rank holds all rows.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 from mpi4py import MPI
@@ -135,6 +140,42 @@ def _newton(cmap, point: np.ndarray, nodes: np.ndarray, start: np.ndarray, steps
     return reference
 
 
+@dataclass
+class Samples:
+    """Rows observed inside the body, each the weighted mean of the model at its samples:
+    ``points`` (n, gdim) the rows' undeformed positions; ``at`` (m, gdim) where the model
+    is evaluated, ``row`` (m,) whose row each sample is, ``weight`` (m,) its share of it
+    (a row's shares sum to 1). A landmark is a row of one sample at its own point."""
+
+    points: np.ndarray
+    at: np.ndarray
+    row: np.ndarray
+    weight: np.ndarray
+
+    @classmethod
+    def single(cls, points: np.ndarray) -> Samples:
+        """Each point its own row."""
+        return cls(points, points, np.arange(len(points)), np.ones(len(points)))
+
+    @classmethod
+    def joined(cls, parts: list[Samples]) -> Samples:
+        """The parts' rows one after another."""
+        offsets = np.cumsum([0] + [len(p.points) for p in parts])[:-1]
+        return cls(np.concatenate([p.points for p in parts]), np.concatenate([p.at for p in parts]),
+                   np.concatenate([p.row + o for p, o in zip(parts, offsets)]),
+                   np.concatenate([p.weight for p in parts]))
+
+    def mean(self, values: np.ndarray) -> np.ndarray:
+        """(n, ...) each row's weighted mean of the samples' ``values`` (m, ...)."""
+        out = np.zeros((len(self.points),) + values.shape[1:])
+        np.add.at(out, self.row, self.weight.reshape((-1,) + (1,) * (values.ndim - 1)) * values)
+        return out
+
+    def spread(self, r: np.ndarray) -> np.ndarray:
+        """(m, gdim) the transpose of ``mean``: each sample's share of its row's ``r``."""
+        return self.weight[:, None] * r[self.row]
+
+
 class PointProbe:
     """u at fixed points anywhere in the mesh (each point evaluated on one rank).
 
@@ -223,22 +264,22 @@ def probe(u: dolfinx.fem.Function, points: np.ndarray) -> np.ndarray:
 
 
 class Observation:
-    """y = y0 + O u at the matched nodes, then at the landmark points."""
+    """y = y0 + O u at the matched nodes, then at the points inside the body."""
 
-    def __init__(self, model: ElasticModel, scene, landmarks: np.ndarray | None = None):
+    def __init__(self, model: ElasticModel, scene, inside: Samples | None = None):
         self.model = model
         self.gdim = model.dofs.gdim
         self.vertices_only = matched_vertices_only(scene, model)
         self.nodes: NodeSet = model.dofs.node_set(scene.matched, vertices_only=self.vertices_only)
         self.node_points = self.nodes.gather(self.nodes.coords)
-        self.landmarks = np.zeros((0, self.gdim)) if landmarks is None else np.asarray(landmarks, float)
+        self.inside = Samples.single(np.zeros((0, self.gdim))) if inside is None else inside
         size = np.ptp(model.dofs.dof_coords, axis=0).max() if len(model.dofs.dof_coords) else 0.0
         size = model.dofs.comm.allreduce(size, op=MPI.MAX)
         try:
-            self.probe = PointProbe(model.dofs.V, self.landmarks, tolerance=0.02 * size) if len(self.landmarks) else None
+            self.probe = PointProbe(model.dofs.V, self.inside.at, tolerance=0.02 * size) if len(self.inside.at) else None
         except UserError as err:  # name the file the points came from
             raise UserError(f"{scene.path.parent / (scene.config['target'] or {}).get('landmarks', '')}: {err}") from None
-        self.points = np.concatenate([self.node_points, self.landmarks])
+        self.points = np.concatenate([self.node_points, self.inside.points])
 
     @property
     def count(self) -> int:
@@ -254,7 +295,18 @@ class Observation:
         nodal = self.nodes.gather(array.reshape(-1, self.model.dofs.bs)[self.nodes.blocks])
         if self.probe is None:
             return nodal
-        return np.concatenate([nodal, self.probe.values(array)])
+        return np.concatenate([nodal, self.inside.mean(self.probe.values(array))])
+
+    def on_space(self, V):
+        """O for another space V over the same rows (a function of V's local array, ghosts
+        up to date): the higher-degree solve of the mesh part is observed so."""
+        probe = PointProbe(V, np.concatenate([self.node_points, self.inside.at]))
+        n = self.node_count
+
+        def values(array: np.ndarray) -> np.ndarray:
+            v = probe.values(array)
+            return np.concatenate([v[:n], self.inside.mean(v[n:])])
+        return values
 
     def positions(self, u: dolfinx.fem.Function) -> np.ndarray:
         return self.points + self.values(u)
@@ -294,7 +346,7 @@ class Observation:
         array[self.nodes.blocks] = self.nodes.local(r[: self.node_count])
         if self.probe is not None:
             landmark = self.model.dofs.function("landmark_load")
-            self.probe.add_transpose(r[self.node_count:], landmark.x.array)
+            self.probe.add_transpose(self.inside.spread(r[self.node_count:]), landmark.x.array)
             landmark.x.scatter_reverse(la.InsertMode.add)
             owned = self.model.dofs.n_owned_blocks * self.model.dofs.bs
             f.x.array[:owned] += landmark.x.array[:owned]
@@ -312,5 +364,5 @@ class Observation:
         for k in range(X.shape[1]):  # a handful of modes: each needs its ghost values
             column.x.array[:owned] = X[:, k]
             column.x.scatter_forward()
-            parts.append(self.probe.values(column.x.array))
-        return np.concatenate([nodal, np.stack(parts, axis=2) if parts else np.zeros((len(self.landmarks), self.gdim, 0))])
+            parts.append(self.inside.mean(self.probe.values(column.x.array)))
+        return np.concatenate([nodal, np.stack(parts, axis=2) if parts else np.zeros((len(self.inside.points), self.gdim, 0))])

@@ -39,7 +39,6 @@ from dolfinx import fem
 
 from fenics_elasto.inverse.linearisation import Linearisation
 from fenics_elasto.inverse.uncertainty.posterior import offset_shift
-from fenics_elasto.model.observation import PointProbe
 from fenics_elasto.model.solvers import (DirectSolver, IterativeSolver, SolverSettings, SolverStats, TwoLevelSolver,
                                          WarmStart, rigid_body_modes)
 from fenics_elasto.model.stiffness import stiffness_form
@@ -131,12 +130,12 @@ def mesh_shift(problem, lin: Linearisation, theta, evaluation) -> np.ndarray | N
     factors = forward.model.solvers.factors_near(forward.coefficients(theta)[0], forward.clamped_boundary)
     solutions = higher_degree_solutions(scene, E, nu, evaluation.fields, factors)  # each state's
     V = solutions[0].function_space
-    probe = PointProbe(V, problem.observation.points)
+    observe = problem.observation.on_space(V)
     coarse = fem.Function(V)
     parts = []  # rows one state after another
     for u, finer in zip(evaluation.fields, solutions):
         coarse.interpolate(u)
-        parts.append(probe.values(finer.x.array) - probe.values(coarse.x.array))
+        parts.append(observe(finer.x.array) - observe(coarse.x.array))
     eps = np.concatenate(parts)
     rows = problem.misfit.statistical_rows(evaluation.y, evaluation.residual)
     ds = offset_shift(lin, np.einsum("lkd,ld->lk", rows, eps).ravel())

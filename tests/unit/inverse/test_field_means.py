@@ -1,0 +1,73 @@
+"""A displacement field's cube is observed as the model's mean over the cube's own
+samples (displacement_field.members, observation.Samples): exact for a field the space
+holds, where the model at the samples' mean point is off wherever u curves."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from mpi4py import MPI
+
+import dolfinx
+from fenics_elasto.inverse import displacement_field
+from fenics_elasto.inverse.displacement_field import cubes, members
+from fenics_elasto.model.observation import PointProbe, Samples
+
+CUBE = 0.25
+
+
+def quadratic(p: np.ndarray) -> np.ndarray:
+    """A displacement a P2 space on straight cells holds exactly, curving on the cubes' scale."""
+    x, y, z = p.T
+    return np.stack([x**2 - y * z, 2 * y**2 + x * z, z**2 - 3 * x * y], axis=1)
+
+
+@pytest.fixture(scope="module")
+def space_and_u():
+    mesh = dolfinx.mesh.create_unit_cube(MPI.COMM_SELF, 4, 4, 4)
+    V = dolfinx.fem.functionspace(mesh, ("Lagrange", 2, (3,)))
+    u = dolfinx.fem.Function(V)
+    u.interpolate(lambda x: quadratic(x.T).T)
+    return V, u
+
+
+def observed(points: np.ndarray) -> tuple[Samples, np.ndarray]:
+    """The field's rows and their cube means of the exact field."""
+    cube, counts = cubes(points, CUBE)
+    samples = members(points, cube, counts, CUBE)
+    exact = np.stack([np.bincount(cube, quadratic(points)[:, c]) for c in range(3)], axis=1) / counts[:, None]
+    return samples, exact
+
+
+def test_a_cube_is_the_models_mean_over_its_samples(space_and_u):
+    V, u = space_and_u
+    points = np.random.default_rng(0).uniform(0.0, 1.0, (3000, 3))
+    samples, exact = observed(points)
+    assert len(samples.at) == len(points)  # few enough: every sample is evaluated
+    means = samples.mean(PointProbe(V, samples.at).values(u.x.array))
+    assert np.abs(means - exact).max() < 1e-12
+    at_mean_point = PointProbe(V, samples.points).values(u.x.array)
+    assert np.abs(at_mean_point - exact).max() > 1e-3  # what observing at the mean point missed
+
+
+def test_past_the_budget_sub_cube_means_stand_for_the_samples(space_and_u, monkeypatch):
+    V, u = space_and_u
+    monkeypatch.setattr(displacement_field, "MEMBERS", 2000)
+    points = np.random.default_rng(1).uniform(0.0, 1.0, (20000, 3))
+    samples, exact = observed(points)
+    assert len(samples.at) <= 2000 and len(samples.points) == len(exact)
+    assert np.allclose(np.bincount(samples.row, samples.weight), 1.0)  # each row's shares sum to 1
+    assert np.allclose(samples.mean(samples.at), samples.points)  # weighed by their samples
+    means = samples.mean(PointProbe(V, samples.at).values(u.x.array))
+    at_mean_point = PointProbe(V, samples.points).values(u.x.array)
+    # sub-cubes of a third of the side: the curvature's error ~9x smaller
+    assert np.abs(means - exact).max() < np.abs(at_mean_point - exact).max() / 5
+
+
+def test_spread_is_the_transpose_of_mean():
+    rng = np.random.default_rng(2)
+    field = rng.uniform(size=(40, 3))
+    samples = Samples.joined([Samples.single(rng.uniform(size=(3, 3))), members(field, *cubes(field, 0.5), 0.5)])
+    v, r = rng.standard_normal((len(samples.at), 3)), rng.standard_normal((len(samples.points), 3))
+    assert np.isclose(np.sum(samples.mean(v) * r), np.sum(v * samples.spread(r)))
+    assert samples.row[:3].tolist() == [0, 1, 2] and samples.row[3:].min() == 3  # the parts one after another
