@@ -220,21 +220,21 @@ class PointProbe:
         element = self.V.ufl_element().basix_element
         blocks = self.V.dofmap.list[cells] if len(cells) else np.zeros((0, self.V.dofmap.list.shape[1]), np.int32)
         # explicit widths: a rank may hold none of the points (reshape(0, -1) is an error)
-        reference = np.array([self._pull_back(mesh, p, c) for p, c in zip(points, cells)])
+        # fetched once: each fetch of a geometry dofmap copies it (40 us a point)
+        cmap, geometry, x = mesh.geometry.cmaps[0], mesh.geometry.dofmaps[0], mesh.geometry.x[:, : self.gdim]
+        reference = np.array([self._pull_back(cmap, p, x[geometry[c]]) for p, c in zip(points, cells)])
         reference = reference.reshape(len(cells), mesh.topology.dim)
         phi = element.tabulate(0, reference)[0] if len(cells) else np.zeros(blocks.shape)
         return blocks, phi.reshape(blocks.shape)
 
-    def _pull_back(self, mesh, point, cell) -> np.ndarray:
-        """The point's reference coordinates in the cell: Newton on the cell's (curved)
-        map. A quadratic map has other preimages far outside the cell, and DOLFINx's
+    def _pull_back(self, cmap, point, nodes) -> np.ndarray:
+        """The point's reference coordinates in the cell with geometry ``nodes``: Newton on
+        the cell's (curved) map. A quadratic map has other preimages far outside the cell, and DOLFINx's
         Newton can land on one: on the real prostate's source a shared edge's midpoint
         pulled back to (13.1, -12.7, -7.2), where the degree-3 basis weighs ~3e4, and
         that one point made the mesh part of sigma 21.7 for an E of 50. Where it fails or
         lands outside the cell, Newton from the affine map of the cell's vertices
         (``_newton``) -- exact at the vertices, close to the point near the cell."""
-        cmap = mesh.geometry.cmaps[0]
-        nodes = mesh.geometry.x[mesh.geometry.dofmaps[0][cell], : self.gdim]
         try:
             reference = cmap.pull_back(point[None, :], nodes)[0]
             if _near_reference_cell(reference):
