@@ -229,3 +229,51 @@ def test_interior_fiducials_determine_what_the_surfaces_leave_loose(tmp_path):
         assert low < 40.0 < high, (low, high)
         widths.append(high - low)
     assert widths[0] < 0.1 * 40.0 and widths[1] > 1.5 * widths[0], widths
+
+
+def test_cells_are_located_by_their_curved_maps(tmp_path):
+    """The vectorised pull-back (observation.pull_back_all) on the plain-gmsh pelvis at
+    order 2 (curved cells), for points inside cells, on their vertices' facets, near and
+    beyond the curved boundary and in the organs' holes: where it finds a cell, DOLFINx's
+    push-forward of its reference coordinates is the point, inside the reference cell;
+    where it finds none, no cell whose convex hull holds the point
+    (compute_colliding_cells, which a point just outside a concave curved face passes)
+    pulls it back inside (DOLFINx's pull-back, or where its Newton fails, the per-point
+    Newton from the vertices' affine map)."""
+    import dolfinx.geometry as geo
+    from fenics_elasto.model.observation import _colliding_cell, _newton, _owned_tree, pull_back_all
+    from independent import plain_source
+
+    mesh = load_scene(plain_source(tmp_path, 2)).mesh
+    x, geometry, cmap = mesh.geometry.x, mesh.geometry.dofmaps[0], mesh.geometry.cmaps[0]
+    rng = np.random.default_rng(3)
+    cells = rng.integers(0, mesh.topology.index_map(3).size_local, 3000)
+    weights = rng.dirichlet(np.ones(4), len(cells))
+    weights[:500, 0] = 0.0  # on a facet of the vertices' simplex
+    weights[:500] /= weights[:500].sum(axis=1, keepdims=True)
+    inside = np.einsum("pi,pid->pd", weights, x[geometry[cells][:, :4]])
+    spread = rng.uniform(x.min(axis=0), x.max(axis=0), (3000, 3))  # inside, outside, in the organs' holes
+    points = np.concatenate([inside, spread])
+    tree, _, xyz = _owned_tree(mesh, points)
+    found = _colliding_cell(mesh, tree, xyz)
+
+    def within(reference):
+        return bool(reference.min() >= -1e-9 and reference.sum() <= 1 + 1e-9)
+
+    located = np.flatnonzero(found >= 0)
+    assert len(located) > 3000  # most of the first 3000, and the spread's inside the body
+    for i, reference in zip(located, pull_back_all(mesh, found[located], points[located])):
+        assert within(reference), i
+        assert np.allclose(cmap.push_forward(reference[None, :], x[geometry[found[i]]])[0], points[i], atol=1e-10), i
+
+    def theirs(i, cell):
+        nodes = x[geometry[cell]]
+        try:
+            return cmap.pull_back(points[i][None, :], nodes)[0]
+        except RuntimeError:  # DOLFINx's Newton did not converge
+            corners = nodes[:4]
+            return _newton(cmap, points[i], nodes, np.linalg.solve((corners[1:] - corners[0]).T, points[i] - corners[0]))
+
+    hulls = geo.compute_colliding_cells(mesh, geo.compute_collisions_points(tree, xyz), xyz)
+    missed = [i for i in np.flatnonzero(found < 0) if any(within(theirs(i, cell)) for cell in hulls.links(i))]
+    assert not missed, missed
