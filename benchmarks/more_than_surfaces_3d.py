@@ -14,7 +14,8 @@ adds one kind of data:
 - the rectum wall's total force, scikit-fem's, stated with 2 % noise, every E estimated
   (the tissue started at half its truth);
 - a displacement field: 20,000 vertices of the truth's mesh with their displacement and
-  a smooth 1 % error, noise stated; the same with independent 1 % noise per sample.
+  a smooth 1 % error, noise stated; the same with independent 1 % noise per sample; and
+  ~10^5 samples of it (each point jittered by 1 mm twelve times) for the cost of a dense field.
 
     .venv/bin/python benchmarks/more_than_surfaces_3d.py [--out DIR] [--set KEY=VALUE ...] [--noise STD] [--far H]
 
@@ -61,6 +62,25 @@ def noisy_field(path: Path, out: Path, share: float, smooth: bool = True) -> tup
     return out, std
 
 
+def dense_field(path: Path, out: Path, share: float, problem: Path, copies: int = 12) -> Path:
+    """~10^5 samples: the field's points jittered by 1 mm ``copies`` times, each keeping its
+    vector, with independent noise of ``share`` x the largest; those inside the source kept."""
+    import pyvista as pv
+    from fenics_elasto.model.observation import distances_to_body
+    from fenics_elasto.model.scene import load_scene
+
+    cloud = pv.read(path)
+    u, points = np.asarray(cloud["displacement"]), np.asarray(cloud.points, float)
+    rng = np.random.default_rng(1)
+    points = np.concatenate([points + rng.normal(0.0, 0.1, points.shape) for _ in range(copies)])
+    u = np.tile(u, (copies, 1)) + share * float(np.linalg.norm(u, axis=1).max()) * rng.standard_normal(points.shape)
+    inside = distances_to_body(load_scene(problem).mesh, points) == 0.0
+    dense = pv.PolyData(points[inside])
+    dense["displacement"] = u[inside]
+    dense.save(out)
+    return out
+
+
 GROUPS = ("bladder", "prostate_surface", "rectum")
 
 
@@ -71,13 +91,14 @@ def segmented(files: dict, out: Path, std: float, seed: int) -> dict:
     return {**files, **{g: ind.noisy_copy(files[g], out / f"{g}.vtp", std, rng) for g in GROUPS}}
 
 
-def rows(filled: dict, emptied: dict, probe: dict, out: Path) -> dict[str, list[str]]:
+def rows(filled: dict, emptied: dict, probe: dict, out: Path, problem: Path) -> dict[str, list[str]]:
     surfaces = lambda files: "surfaces={" + ", ".join(  # noqa: E731
         f"{g}='{files[g]}'" for g in GROUPS) + "}"
     force = np.array(json.loads(Path(filled["forces"]).read_text())["rectum"])
     noise = 0.02 * float(np.linalg.norm(force))
     field, field_std = noisy_field(Path(filled["field"]), out / "field_noisy.vtp", 0.01)
     independent, _ = noisy_field(Path(filled["field"]), out / "field_independent.vtp", 0.01, smooth=False)
+    dense = dense_field(Path(filled["field"]), out / "field_dense.vtp", 0.01, problem)
     return {
         "surfaces only": [f"target={{{surfaces(filled)}}}"],
         "+ 4 fiducials": [f"target={{{surfaces(filled)}, landmarks='{filled['fiducials']}'}}"],
@@ -93,6 +114,8 @@ def rows(filled: dict, emptied: dict, probe: dict, out: Path) -> dict[str, list[
         "+ a field (1 %)": [f"target={{{surfaces(filled)}, displacement='{field}', displacement_noise={field_std}}}"],
         "+ a field (1 %, independent)": [f"target={{{surfaces(filled)}, displacement='{independent}', "
                                          f"displacement_noise={field_std}}}"],
+        "+ a field (1 %, independent, 10^5 samples)": [
+            f"target={{{surfaces(filled)}, displacement='{dense}', displacement_noise={field_std}}}"],
     }
 
 
@@ -114,7 +137,7 @@ def run(out: Path, extra: list[str], only: list[str], noise: float = 0.0, far: f
         out = out / f"far_{far:g}"
     out.mkdir(parents=True, exist_ok=True)
     table, base = [], None
-    for name, sets in rows(filled, emptied, probe, out).items():
+    for name, sets in rows(filled, emptied, probe, out, problem).items():
         if only and name not in only:
             continue
         folder = out / re.sub(r"[(),]", "", name.replace(" ", "_").replace("+", "plus").replace("%", "pc"))
