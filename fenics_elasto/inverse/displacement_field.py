@@ -19,7 +19,7 @@ observed in cubes of 0.3. Past MEMBERS samples the model's mean is taken at the 
 of the finest sub-cubes that keep within it (``members``).
 
 So the estimate does not change when the field is sampled more densely than the
-correlation length, and 10^6 samples cost what ~10^4 points cost: one sparse
+correlation length, and 10^6 samples cost what MEMBERS points cost: one sparse
 interpolation operator over them, built once (observation.PointProbe).
 
 Samples outside the body: an image's voxels cover the air around it, so those are
@@ -83,20 +83,24 @@ def _sums(cube: np.ndarray, count: int, a: np.ndarray) -> np.ndarray:
     return np.stack([np.bincount(cube, a[:, c], count) for c in range(a.shape[1])], axis=1)
 
 
+def _means(cube: np.ndarray, counts: np.ndarray, a: np.ndarray) -> np.ndarray:
+    return _sums(cube, len(counts), a) / counts[:, None]
+
+
 def aggregate(points: np.ndarray, vectors: np.ndarray, length: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(mean points, mean vectors, sample counts), one row per occupied cube of side ``length``."""
     cube, counts = cubes(points, length)
-    return _sums(cube, len(counts), points) / counts[:, None], _sums(cube, len(counts), vectors) / counts[:, None], counts
+    return _means(cube, counts, points), _means(cube, counts, vectors), counts
 
 
-MEMBERS = 50_000  # the most points a field's model means are taken at (PointProbe's set-up is ~0.1 ms a point)
+MEMBERS = 50_000  # the most points a field's model means are taken at (PointProbe's set-up: ~0.05 ms a point)
 
 
 def members(points: np.ndarray, cube: np.ndarray, counts: np.ndarray, length: float) -> Samples:
     """Each cube's row (``cubes(points, length)``) as the mean over its samples: at the
     samples themselves, or, past MEMBERS of them, at the means of the finest sub-cubes
     (side length / k, k = 8 down to 2) that keep within MEMBERS, each weighed by its samples."""
-    means = _sums(cube, len(counts), points) / counts[:, None]
+    means = _means(cube, counts, points)
     if len(points) <= MEMBERS:
         return Samples(means, points, cube, 1.0 / counts[cube])
     for k in (8, 6, 4, 3, 2):
@@ -107,7 +111,7 @@ def members(points: np.ndarray, cube: np.ndarray, counts: np.ndarray, length: fl
     sub = sub.ravel()
     row = np.zeros(len(weight), np.int64)
     row[sub] = cube
-    at = _sums(sub, len(weight), points) / weight[:, None]
+    at = _means(sub, weight, points)
     return Samples(means, at, row, weight / counts[row])
 
 
@@ -130,7 +134,7 @@ def observed_samples(field: DisplacementField, mesh, correlation: float | None) 
         points, vectors = field.points, field.vectors
     length = correlation or mean_cell_size(mesh)
     cube, counts = cubes(points, length)
-    means = _sums(cube, len(counts), vectors) / counts[:, None]
+    means = _means(cube, counts, vectors)
     samples = members(points, cube, counts, length)
     log.info(f"displacement field {field.source}: {len(field.points)} samples, {int((~outside).sum())} inside the "
              f"body, observed as {len(means)} cubes of {length:.3g} (its correlation length"
