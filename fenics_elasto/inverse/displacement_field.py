@@ -39,7 +39,7 @@ from mpi4py import MPI
 
 from fenics_elasto.files.displacements import read_displacement
 from fenics_elasto.files.images import is_image
-from fenics_elasto.model.observation import Samples, distances_to_body
+from fenics_elasto.model.observation import Samples, farther_than
 from fenics_elasto.util.errors import require
 from fenics_elasto.util.logs import log
 
@@ -121,7 +121,7 @@ def observed_samples(field: DisplacementField, mesh, correlation: float | None) 
     size = float(np.ptp(mesh.geometry.x, axis=0).max())
     size = mesh.comm.allreduce(size, op=MPI.MAX)
     tolerance = 1e-6 * size
-    outside = distances_to_body(mesh, field.points) > tolerance
+    outside = farther_than(mesh, tolerance, field.points)
     require(not outside.all(), f"{field.source}: no sample lies inside the body (the field's points span "
             f"{np.round(field.points.min(axis=0), 3).tolist()} to {np.round(field.points.max(axis=0), 3).tolist()}): "
             "is it in another frame or unit?")

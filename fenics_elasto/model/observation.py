@@ -85,6 +85,42 @@ def distances_to_body(mesh, points: np.ndarray) -> np.ndarray:
     return distance
 
 
+def farther_than(mesh, distance: float, points: np.ndarray) -> np.ndarray:
+    """Whether each point lies farther than ``distance`` from the body, on every rank: as
+    ``distances_to_body(...) > distance``, but a point certainly farther, by its distance
+    to the boundary's straight facets less their curved faces' bulge
+    (``_below_boundary_distance``), is not measured by the closest-cell search (~0.2 ms a
+    point: 50,000 points around the pelvis took 8 s, and an image's voxels in the air
+    around the body are most of its 10^5-10^6)."""
+    beyond = elementwise_min(mesh.comm, (~_inside_owned(mesh, points)).astype(np.int8)).astype(bool)
+    rest = np.flatnonzero(beyond)
+    near = rest[elementwise_min(mesh.comm, _below_boundary_distance(mesh, points[rest])) <= distance]
+    beyond[near] = elementwise_min(mesh.comm, closest_cells(mesh, points[near])[1]) > distance
+    return beyond
+
+
+def _below_boundary_distance(mesh, points: np.ndarray) -> np.ndarray:
+    """A lower bound of each point's distance to this rank's boundary facets (inf where it
+    has none): the distance to the facets made straight between their vertices (libigl's
+    tree), less twice the farthest any facet node lies from its straight facet (a
+    quadratic face strays from it at most 4/3 of its midpoints' offset). The closest
+    point of the body to a point outside it lies on some rank's boundary facet."""
+    tdim, gdim = mesh.topology.dim, mesh.geometry.dim
+    for entities in ((tdim - 1, tdim), (tdim - 1, 0), (0, tdim)):  # on every rank, before any return
+        mesh.topology.create_connectivity(*entities)
+    facets = dolfinx.mesh.exterior_facet_indices(mesh.topology)  # collective
+    if not len(facets) or not len(points):
+        return np.full(len(points), np.inf)
+    import igl
+
+    vertices = mesh.topology.connectivity(tdim - 1, 0).array.reshape(-1, tdim)[facets]
+    corners = dolfinx.mesh.entities_to_geometry(mesh, 0, vertices.ravel()).reshape(vertices.shape)
+    x = np.ascontiguousarray(mesh.geometry.x[:, :gdim])
+    nodes = np.unique(dolfinx.mesh.entities_to_geometry(mesh, tdim - 1, facets))
+    bulge = float(np.sqrt(igl.point_mesh_squared_distance(x[nodes], x, corners)[0].max()))
+    return np.sqrt(igl.point_mesh_squared_distance(np.ascontiguousarray(points, float), x, corners)[0]) - 2.0 * bulge
+
+
 def _inside_owned(mesh, points: np.ndarray) -> np.ndarray:
     """Whether each point lies in one of this rank's owned cells."""
     search = _owned_tree(mesh, points)

@@ -231,7 +231,36 @@ def test_interior_fiducials_determine_what_the_surfaces_leave_loose(tmp_path):
     assert widths[0] < 0.1 * 40.0 and widths[1] > 1.5 * widths[0], widths
 
 
-def test_cells_are_located_by_their_curved_maps(tmp_path):
+@pytest.fixture(scope="module")
+def curved_pelvis(tmp_path_factory):
+    """The plain-gmsh pelvis at order 2 (curved cells)."""
+    from independent import plain_source
+
+    return load_scene(plain_source(tmp_path_factory.mktemp("pelvis"), 2)).mesh
+
+
+def test_far_points_are_told_without_measuring_them(curved_pelvis):
+    """farther_than skips the closest-cell search for points its lower bound puts beyond
+    the distance, and answers as distances_to_body does: points around the curved pelvis,
+    in its organs' cavities and just off its boundary nodes, at a tolerance and at 3 mm."""
+    from fenics_elasto.model.observation import _below_boundary_distance, distances_to_body, farther_than
+
+    mesh = curved_pelvis
+    x = mesh.geometry.x
+    rng = np.random.default_rng(4)
+    around = rng.uniform(x.min(axis=0) - 2.0, x.max(axis=0) + 2.0, (4000, 3))
+    nodes = x[rng.integers(0, len(x), 2000)] + rng.normal(0.0, 1e-3, (2000, 3))  # on the boundary, some
+    points = np.concatenate([around, nodes])
+    distance = distances_to_body(mesh, points)
+    bound = _below_boundary_distance(mesh, points)
+    outside = distance > 0.0
+    assert np.all(bound[outside] <= distance[outside] + 1e-12)  # a lower bound of every outside point's
+    assert (bound > 0.3).sum() > 1000 and (bound[outside] <= 2e-5).sum() > 100  # both ways taken
+    for within in (2e-5, 0.3):
+        assert np.array_equal(farther_than(mesh, within, points), distance > within), within
+
+
+def test_cells_are_located_by_their_curved_maps(curved_pelvis):
     """The vectorised pull-back (observation.pull_back_all) on the plain-gmsh pelvis at
     order 2 (curved cells), for points inside cells, on their vertices' facets, near and
     beyond the curved boundary and in the organs' holes: where it finds a cell, DOLFINx's
@@ -242,9 +271,8 @@ def test_cells_are_located_by_their_curved_maps(tmp_path):
     Newton from the vertices' affine map)."""
     import dolfinx.geometry as geo
     from fenics_elasto.model.observation import _colliding_cell, _newton, _owned_tree, pull_back_all
-    from independent import plain_source
 
-    mesh = load_scene(plain_source(tmp_path, 2)).mesh
+    mesh = curved_pelvis
     x, geometry, cmap = mesh.geometry.x, mesh.geometry.dofmaps[0], mesh.geometry.cmaps[0]
     rng = np.random.default_rng(3)
     cells = rng.integers(0, mesh.topology.index_map(3).size_local, 3000)
