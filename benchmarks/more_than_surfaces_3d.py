@@ -66,7 +66,7 @@ def dense_field(path: Path, out: Path, share: float, problem: Path, copies: int 
     """~10^5 samples: the field's points jittered by 1 mm ``copies`` times, each keeping its
     vector, with independent noise of ``share`` x the largest; those inside the source kept."""
     import pyvista as pv
-    from fenics_elasto.model.observation import distances_to_body
+    from fenics_elasto.model.observation import farther_than
     from fenics_elasto.model.scene import load_scene
 
     cloud = pv.read(path)
@@ -74,7 +74,7 @@ def dense_field(path: Path, out: Path, share: float, problem: Path, copies: int 
     rng = np.random.default_rng(1)
     points = np.concatenate([points + rng.normal(0.0, 0.1, points.shape) for _ in range(copies)])
     u = np.tile(u, (copies, 1)) + share * float(np.linalg.norm(u, axis=1).max()) * rng.standard_normal(points.shape)
-    inside = distances_to_body(load_scene(problem).mesh, points) == 0.0
+    inside = ~farther_than(load_scene(problem).mesh, 0.0, points)
     dense = pv.PolyData(points[inside])
     dense["displacement"] = u[inside]
     dense.save(out)

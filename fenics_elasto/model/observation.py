@@ -79,9 +79,9 @@ def distances_to_body(mesh, points: np.ndarray) -> np.ndarray:
     """Each point's distance to the body (0 inside), on every rank. Inside first, by the
     bounding-box tree's collisions (cheap); the closest cell only for points inside no
     rank's cells (1.5e5 samples of a 2D field: 8.3 s by closest cells alone)."""
-    inside = elementwise_min(mesh.comm, (~_inside_owned(mesh, points)).astype(np.int8)) == 0
+    outside = _in_no_rank(mesh, points)
     distance = np.zeros(len(points))
-    distance[~inside] = elementwise_min(mesh.comm, closest_cells(mesh, points[~inside])[1])
+    distance[outside] = elementwise_min(mesh.comm, closest_cells(mesh, points[outside])[1])
     return distance
 
 
@@ -92,19 +92,25 @@ def farther_than(mesh, distance: float, points: np.ndarray) -> np.ndarray:
     (``_below_boundary_distance``), is not measured by the closest-cell search (~0.2 ms a
     point: 50,000 points around the pelvis took 8 s, and an image's voxels in the air
     around the body are most of its 10^5-10^6)."""
-    beyond = elementwise_min(mesh.comm, (~_inside_owned(mesh, points)).astype(np.int8)).astype(bool)
+    beyond = _in_no_rank(mesh, points)
     rest = np.flatnonzero(beyond)
     near = rest[elementwise_min(mesh.comm, _below_boundary_distance(mesh, points[rest])) <= distance]
     beyond[near] = elementwise_min(mesh.comm, closest_cells(mesh, points[near])[1]) > distance
     return beyond
 
 
+def _in_no_rank(mesh, points: np.ndarray) -> np.ndarray:
+    """Whether each point lies in no rank's cells (on every rank)."""
+    return elementwise_min(mesh.comm, (~_inside_owned(mesh, points)).astype(np.int8)).astype(bool)
+
+
 def _below_boundary_distance(mesh, points: np.ndarray) -> np.ndarray:
     """A lower bound of each point's distance to this rank's boundary facets (inf where it
     has none): the distance to the facets made straight between their vertices (libigl's
-    tree), less twice the farthest any facet node lies from its straight facet (a
-    quadratic face strays from it at most 4/3 of its midpoints' offset). The closest
-    point of the body to a point outside it lies on some rank's boundary facet."""
+    tree), less twice the largest offset of a facet's node from where its straight facet
+    puts it (a vertex, or the midpoint of two: a quadratic face strays from its straight
+    facet at most 4/3 of its midpoints' offsets). The closest point of the body to a point
+    outside it lies on some rank's boundary facet."""
     tdim, gdim = mesh.topology.dim, mesh.geometry.dim
     for entities in ((tdim - 1, tdim), (tdim - 1, 0), (0, tdim)):  # on every rank, before any return
         mesh.topology.create_connectivity(*entities)
@@ -116,8 +122,11 @@ def _below_boundary_distance(mesh, points: np.ndarray) -> np.ndarray:
     vertices = mesh.topology.connectivity(tdim - 1, 0).array.reshape(-1, tdim)[facets]
     corners = dolfinx.mesh.entities_to_geometry(mesh, 0, vertices.ravel()).reshape(vertices.shape)
     x = np.ascontiguousarray(mesh.geometry.x[:, :gdim])
-    nodes = np.unique(dolfinx.mesh.entities_to_geometry(mesh, tdim - 1, facets))
-    bulge = float(np.sqrt(igl.point_mesh_squared_distance(x[nodes], x, corners)[0].max()))
+    nodes = x[dolfinx.mesh.entities_to_geometry(mesh, tdim - 1, facets)]  # (facets, k, gdim)
+    ends = x[corners]  # (facets, tdim, gdim)
+    first, second = np.triu_indices(tdim, 1)
+    straight = np.concatenate([ends, (ends[:, first] + ends[:, second]) / 2], axis=1)  # vertices, midpoints
+    bulge = float(np.linalg.norm(nodes[:, :, None] - straight[:, None], axis=3).min(axis=2).max())
     return np.sqrt(igl.point_mesh_squared_distance(np.ascontiguousarray(points, float), x, corners)[0]) - 2.0 * bulge
 
 
