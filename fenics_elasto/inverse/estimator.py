@@ -322,6 +322,9 @@ def estimate(problem: InverseProblem, options: Options | None = None, basis: np.
     checks = [check_determined(problem, basis, options, choose_inner(problem, options, basis)),
               None if basis is None else reach_warning(held_out, basis.shape[1])]
     warnings = list(scene.warnings) + [w for w in checks if w]
+    if basis is not None:  # its first solve is the initial values' block: factorized while the estimator is set up
+        forward = problem.forward
+        forward.model.factorize_ahead(forward.coefficients(problem.params.initial)[0], forward.clamped_boundary)
     estimator = Estimator(problem, options, basis)
     try:
         result = _run(estimator, warnings, extent_warnings, phi_undeformed, held_out, start)

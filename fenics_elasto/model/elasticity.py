@@ -61,6 +61,11 @@ class ElasticModel:
         or CG + AMG), cached per (c, clamped set) -- see solvers.SolverCache."""
         return self.solvers.get(c, clamped)
 
+    def factorize_ahead(self, c, clamped: np.ndarray) -> None:
+        """Start ``factorize(c, clamped)``'s factorization now, beside the caller's next
+        work (serial, direct: solvers.SolverCache.ahead); its first solve waits for it."""
+        self.solvers.ahead(c, clamped)
+
     @contextmanager
     def solver(self, c, clamped: np.ndarray, nearby: bool = False, rtol: float | None = None):
         """A solver of K(c) for the solves in the ``with`` block: the cached factorization

@@ -27,6 +27,11 @@ Every K here is sum_j c_j M_j with identity rows and columns on the clamped DOFs
   (``NearbySolver``): a handful of back-solves instead of a new factorization. The same
   factors (``SolverCache.closest``, ``DirectSolver.apply_factors``) precondition the
   reduced estimate's refinement at its optimum (surrogate.MaterialSurrogate.refine).
+* **ahead** (a reduced estimate's one factorization, ``SolverCache.ahead``): serial, the
+  factorization runs in a thread of its own through PETSc's C library, which lets go of
+  the GIL, while the estimate sets itself up (matching, the surrogate's pieces) on the
+  other core; its first solve waits for it. The default phantom at rank 80: 49.4 -> 47.7 s
+  (docs: performance, "The factorization beside the set-up").
 * **auto**: direct up to ``DIRECT_LIMIT`` DOFs, iterative beyond (the crossover measured
   by benchmarks/scale.py on a 2-core, 24 GB machine).
 
@@ -57,6 +62,9 @@ win over the defaults set here.
 
 from __future__ import annotations
 
+import ctypes
+import functools
+import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable, Iterator
@@ -304,7 +312,7 @@ class DirectSolver(LinearSolver):
     Above MEMORY_CHECK_DOFS the factors must fit the memory available first
     (``factor_need``: their size from an earlier analysis of this pattern, if known)."""
 
-    def __init__(self, K, clamped, settings, stats, factor_need: float | None = None):
+    def __init__(self, K, clamped, settings, stats, factor_need: float | None = None, ahead: bool = False):
         super().__init__(K, clamped, settings, stats)
         self.ksp.setType("preonly")
         pc = self.ksp.getPC()
@@ -320,22 +328,65 @@ class DirectSolver(LinearSolver):
             F.setMumpsIcntl(35, 2)  # block low-rank in factorization and solve
             F.setMumpsCntl(7, settings.blr)  # dropping tolerance of the low-rank blocks
         self._analysed = False
+        self._pending: threading.Thread | None = None  # the factorization under way (``ahead``)
         self.factor_need = factor_need
         if self.dofs > MEMORY_CHECK_DOFS:
             self.factor_need = check_factor_fits(K, settings.factor, self.dofs, factor_need)
-        self._setup()
+        if ahead and _releases_the_gil(self.comm):
+            self._start()
+        else:
+            self._setup()
 
     def _setup(self) -> None:
         start = time.perf_counter()
         self.ksp.setUp()
+        self._factored(time.perf_counter() - start)
+
+    def _factored(self, seconds: float) -> None:
         _check_factor(self.ksp.getPC(), self.dofs)
-        self.seconds = time.perf_counter() - start  # what another factorization would cost
+        self.seconds = seconds  # what another factorization would cost
         self.stats.analyses += not self._analysed
         self.stats.factorizations += 1
         self._analysed = True
 
+    def _start(self) -> None:
+        """The factorization in a thread of its own, through PETSc's C library (ctypes lets
+        go of the GIL; petsc4py holds it throughout): the caller goes on meanwhile, and
+        the first use of the factors waits for them (``_settle``). The thread is not a
+        daemon: a process that ends meanwhile waits for it before PETSc is finalized."""
+        library, start, outcome = _petsc_library(), time.perf_counter(), {}
+        assert library is not None  # _releases_the_gil found it
+
+        def factorize() -> None:
+            outcome["code"] = library.KSPSetUp(self.ksp.handle)
+            outcome["seconds"] = time.perf_counter() - start
+
+        self._outcome: dict[str, float] = outcome
+        self._pending = threading.Thread(target=factorize, name="factorization")
+        self._pending.start()
+
+    def _settle(self) -> None:
+        """Wait for a factorization started ahead, and check it as ``_setup`` does."""
+        if self._pending is None:
+            return
+        self._pending.join()
+        self._pending = None
+        if self._outcome.get("code", 1) != 0:
+            self._setup()  # again through petsc4py: its exception carries PETSc's message
+            return
+        self._factored(self._outcome["seconds"])
+
+    def refresh(self) -> None:
+        self._settle()
+        super().refresh()
+
+    def destroy(self) -> None:
+        self._settle()
+        super().destroy()
+
     @property
     def factor(self) -> PETSc.Mat:
+        self._settle()
         return self.ksp.getPC().getFactorMatrix()
 
     def solve(self, b, x):
@@ -350,6 +401,7 @@ class DirectSolver(LinearSolver):
         """X = F^-1 B through the factors, unrefined (a Vec, or a dense block by
         MatMatSolve): the first step of ``solve``, and a preconditioner of K at a nearby
         material value."""
+        self._settle()
         if isinstance(B, PETSc.Vec):
             self.ksp.solve(B, X)
             if self.ksp.getConvergedReason() < 0:
@@ -419,6 +471,28 @@ class DirectSolver(LinearSolver):
             return SolverError(f"{where}: that rtol is below what double precision reaches here; raise [solver] rtol")
         return SolverError(f"{where}: K is (nearly) singular -- clamp a group that stops every rigid motion -- "
                            "or [solver] blr is too loose")
+
+
+@functools.cache
+def _petsc_library() -> ctypes.CDLL | None:
+    """The PETSc library petsc4py runs on (loaded already: found by its soname), for the
+    calls made without the GIL; None where it is not found."""
+    major, minor, _ = PETSc.Sys.getVersion()
+    try:
+        library = ctypes.CDLL(f"libpetsc.so.{major}.{minor}")
+    except OSError:
+        return None
+    library.KSPSetUp.argtypes = [ctypes.c_void_p]
+    library.KSPSetUp.restype = ctypes.c_int
+    return library
+
+
+def _releases_the_gil(comm) -> bool:
+    """Whether a factorization can run beside the caller: serial only (on several ranks
+    MUMPS's collectives and the caller's would share PETSc's communicators across
+    threads, and the ranks already use the cores), where MPI allows calls from two
+    threads at once (MUMPS calls it even alone), with PETSc's library at hand."""
+    return comm.size == 1 and MPI.Query_thread() == MPI.THREAD_MULTIPLE and _petsc_library() is not None
 
 
 def rhs_blocking(dofs: int) -> int:
@@ -666,6 +740,14 @@ class SolverCache:
         self._solvers[key] = solver
         return solver
 
+    def ahead(self, c, clamped: np.ndarray) -> None:
+        """Start the factorization of K(c) now, to run beside whatever the caller does
+        before its first solve (DirectSolver ``ahead``); nothing with the iterative
+        method, or where K(c) is cached or the cache is full."""
+        key = self._key(c, clamped)
+        if self.stats.method == "direct" and key not in self._solvers and len(self._solvers) < self.size:
+            self._solvers[key] = self._new(self.stiffness(c, clamped), clamped, ahead=True)
+
     def nearby(self, c, clamped: np.ndarray, rtol: float | None = None) -> NearbySolver | None:
         """A NearbySolver for K(c) on the factors ``closest`` finds (to ``rtol`` if given,
         else the settings'); None if there are none. The caller destroys it after use: it
@@ -701,9 +783,9 @@ class SolverCache:
                 best = (spread, solver)
         return None if best is None else best[1]
 
-    def _new(self, K: PETSc.Mat, clamped: np.ndarray) -> LinearSolver:
+    def _new(self, K: PETSc.Mat, clamped: np.ndarray, ahead: bool = False) -> LinearSolver:
         if self.stats.method == "direct":
-            solver = DirectSolver(K, clamped, self.settings, self.stats, self._factor_need.get(clamped.tobytes()))
+            solver = DirectSolver(K, clamped, self.settings, self.stats, self._factor_need.get(clamped.tobytes()), ahead)
             self._factor_need[clamped.tobytes()] = solver.factor_need
             return solver
         if self._modes is None:

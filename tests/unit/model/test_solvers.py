@@ -334,6 +334,35 @@ def test_cg_that_does_not_converge_is_an_error(cantilever, petsc_option):
         _solve_at(model, cantilever, np.array([1000.0]), _load(model))
 
 
+def test_a_factorization_started_ahead_runs_beside_the_caller(phantom_p1, petsc_option):
+    """factorize_ahead (an estimate's first factorization, started before its set-up):
+    the call returns while MUMPS factorizes, the caller's Python runs meanwhile (the
+    factorization does not hold the GIL), the first solve waits and gives the
+    synchronous answer with one factorization counted, and a failed factorization is
+    the same one-line error at that first solve."""
+    scene = phantom_p1
+    E = np.array([40.0])
+    synchronous = ElasticModel(scene, SolverSettings(method="direct"))
+    expected = _solve_at(synchronous, scene, E, _load(synchronous))
+    model = ElasticModel(scene, SolverSettings(method="direct"))
+    clamped = model.dofs.clamped_dofs(scene.fixed)
+    c = model.stiffness.coefficients(E, material_values(scene)[1])
+    model.factorize_ahead(c, clamped)
+    solver = model.solvers.get(c, clamped)
+    steps = 0
+    while solver._pending is not None and solver._pending.is_alive():
+        steps += 1  # a thread holding the GIL would leave this loop no turn until it ended
+    assert steps > 1000, steps
+    assert model.factorizations == 0  # counted once the caller has waited for it
+    assert relative(_solve_at(model, scene, E, _load(model)), expected) < 1e-12
+    assert model.factorizations == 1
+    petsc_option("elasto_mat_mumps_icntl_23", 1)  # MUMPS may use 1 MB: it fails with INFOG(1) = -19
+    failing = ElasticModel(scene, SolverSettings(method="direct"))
+    failing.factorize_ahead(c, clamped)
+    with pytest.raises(SolverError, match=r"INFOG\(1\) = -19.*ICNTL\(23\)"):
+        _solve_at(failing, scene, E, _load(failing))
+
+
 def test_cli_failed_factorization_is_one_line_and_exit_2(scenes, tmp_path, monkeypatch):
     monkeypatch.setenv("PETSC_OPTIONS", "-elasto_mat_mumps_icntl_23 1")
     proc = run_cli("simulate", scenes["cantilever"], "--out", tmp_path / "out", "--set", "solver.method='direct'")
