@@ -674,6 +674,31 @@ def test_an_inner_spread_widens_the_profile_interval_to_the_trend_minimum():
         assert jagged and not low <= s0 <= high, (offset, s0, low, high)
 
 
+def test_fits_at_a_bound_of_s_are_no_starts_for_the_inner_spread():
+    """The inner spread re-fits the answer from fits met along the profile, but not from
+    one at a bound of s (the interval search stops there; its controls are far from any
+    the data allow): on the noisy pelvis with fiducials, the fit at E = 2 alone set the
+    spread, 9x the others'. The rest are picked from the lowest s to the highest."""
+    from fenics_elasto.inverse.uncertainty.answer import AnswerUncertainty
+
+    bounds = np.log([2.0, 300.0])
+    at = {s: SimpleNamespace(q=np.array([s]), value=1.0) for s in
+          [np.log(np.exp(bounds[0])), 3.5, 3.8, 3.9, 4.0, 4.1, 4.3, float(bounds[1])]}  # the ends as to_s gives them
+    used = []
+
+    def inner_spread(s, starts, cold):
+        used.extend(float(q[0]) for q in starts)
+        return 0.0, cold.q  # no spread: the interval stays as it was
+
+    answer = object.__new__(AnswerUncertainty)
+    answer.surrogate = SimpleNamespace(inner_spread=inner_spread)
+    answer.params = SimpleNamespace(s_bounds=lambda: [tuple(bounds)], labels=["E"])
+    post = SimpleNamespace(s=np.array([3.9]), laplace_std_s=np.array([0.1]), noise_std=1.0, inner_spread=0.0)
+    ends = answer._allow_for_inner_minima(post, list(at.items()), (3.7, 4.1), False)
+    assert ends == ((3.7, 4.1), False)
+    assert used == [3.5, 3.8, 4.0, 4.1, 4.3]  # the bounds' fits and the answer's own left out
+
+
 class _Quadratic:
     """A landmark-like misfit, Phi = |y - t|^2 / 2: Gauss-Newton's model of it is exact."""
 
