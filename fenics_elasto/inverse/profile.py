@@ -236,16 +236,17 @@ class SurrogateProfile:
 
 
 class FewerModes(SurrogateProfile):
-    """Phi*(theta) on the surrogate with only each state's ``rank`` leading boundary modes
-    (the bases are ordered by the energy they hold): where the answer goes with fewer
-    bases, to tell whether it has settled in the rank (report.fit_of_bases). The prior's
-    weight is the full fit's; its anchor, the surface-matched start, keeps those modes.
-    Its fits stop at ``tol`` (the inner solver's by default)."""
+    """Phi*(theta) on the surrogate with only some of each state's boundary modes, its
+    ``columns`` of the bases: where the answer goes with fewer bases (report.fit_of_bases:
+    the leading half, the bases being ordered by the energy they hold, to tell whether
+    it has settled in the rank; the trained modes without the data's own wall motion).
+    The prior's weight is the full fit's; its anchor, the surface-matched start, keeps
+    those modes. Its fits stop at ``tol`` (the inner solver's by default)."""
 
-    def __init__(self, profile: Profile, rank: int, tol: float | None = None):
+    def __init__(self, profile: Profile, columns: np.ndarray, tol: float | None = None):
         super().__init__(profile)
         full = profile.basis.shape[1]
-        self.keep = np.concatenate([state * full + np.arange(rank) for state in range(profile.problem.states.count)])
+        self.keep = np.concatenate([state * full + columns for state in range(profile.problem.states.count)])
         inner = profile.inner
         self.fit_inner = GaussNewton(inner.problem, inner.q0[self.keep], inner.anchor, inner.maxiter,
                                      inner.tol if tol is None else tol)
