@@ -328,12 +328,12 @@ class DirectSolver(LinearSolver):
             F.setMumpsIcntl(35, 2)  # block low-rank in factorization and solve
             F.setMumpsCntl(7, settings.blr)  # dropping tolerance of the low-rank blocks
         self._analysed = False
-        self._pending: threading.Thread | None = None  # the factorization under way (``ahead``)
+        self._pending: _SetUpAside | None = None  # the factorization under way (``ahead``)
         self.factor_need = factor_need
         if self.dofs > MEMORY_CHECK_DOFS:
             self.factor_need = check_factor_fits(K, settings.factor, self.dofs, factor_need)
-        if ahead and _releases_the_gil(self.comm):
-            self._start()
+        if ahead and _releases_the_gil(self.comm):  # its first use waits for it (_settle)
+            self._pending = _SetUpAside(self.ksp)
         else:
             self._setup()
 
@@ -349,32 +349,16 @@ class DirectSolver(LinearSolver):
         self.stats.factorizations += 1
         self._analysed = True
 
-    def _start(self) -> None:
-        """The factorization in a thread of its own, through PETSc's C library (ctypes lets
-        go of the GIL; petsc4py holds it throughout): the caller goes on meanwhile, and
-        the first use of the factors waits for them (``_settle``). The thread is not a
-        daemon: a process that ends meanwhile waits for it before PETSc is finalized."""
-        library, start, outcome = _petsc_library(), time.perf_counter(), {}
-        assert library is not None  # _releases_the_gil found it
-
-        def factorize() -> None:
-            outcome["code"] = library.KSPSetUp(self.ksp.handle)
-            outcome["seconds"] = time.perf_counter() - start
-
-        self._outcome: dict[str, float] = outcome
-        self._pending = threading.Thread(target=factorize, name="factorization")
-        self._pending.start()
-
     def _settle(self) -> None:
         """Wait for a factorization started ahead, and check it as ``_setup`` does."""
         if self._pending is None:
             return
-        self._pending.join()
+        code, seconds = self._pending.wait()
         self._pending = None
-        if self._outcome.get("code", 1) != 0:
+        if code != 0:
             self._setup()  # again through petsc4py: its exception carries PETSc's message
             return
-        self._factored(self._outcome["seconds"])
+        self._factored(seconds)
 
     def refresh(self) -> None:
         self._settle()
@@ -471,6 +455,33 @@ class DirectSolver(LinearSolver):
             return SolverError(f"{where}: that rtol is below what double precision reaches here; raise [solver] rtol")
         return SolverError(f"{where}: K is (nearly) singular -- clamp a group that stops every rigid motion -- "
                            "or [solver] blr is too loose")
+
+
+class _SetUpAside:
+    """A KSP's set-up (its factorization) in a thread of its own, through PETSc's C
+    library: ctypes lets go of the GIL, where petsc4py holds it throughout, so the caller
+    goes on meanwhile. The thread is not a daemon: a process that ends meanwhile waits
+    for it before PETSc is finalized."""
+
+    def __init__(self, ksp: PETSc.KSP):
+        library = _petsc_library()
+        assert library is not None  # _releases_the_gil found it
+        start, self._outcome = time.perf_counter(), {"code": 1, "seconds": 0.0}
+
+        def set_up() -> None:
+            self._outcome["code"] = library.KSPSetUp(ksp.handle)
+            self._outcome["seconds"] = time.perf_counter() - start
+
+        self._thread = threading.Thread(target=set_up, name="factorization")
+        self._thread.start()
+
+    def is_alive(self) -> bool:
+        return self._thread.is_alive()
+
+    def wait(self) -> tuple[int, float]:
+        """(PETSc's error code, the set-up's seconds), once it has ended."""
+        self._thread.join()
+        return int(self._outcome["code"]), float(self._outcome["seconds"])
 
 
 @functools.cache
