@@ -141,6 +141,13 @@ def test_sensitivities_are_derivatives_of_the_mode_fields(inclusion):
         assert with_sensitivities < 0.1 * relative_error(plain.response(probe)[0], truth)
 
 
+def answer_and_random_bases(problem) -> np.ndarray:
+    """Orthonormal bases of rank 6: the wall motion of the full-space answer (one
+    estimate) and five random directions (seed 1)."""
+    random = np.random.default_rng(1).standard_normal((problem.force_dofs, 5))
+    return np.linalg.qr(np.c_[problem.forward.on_loaded(estimate(problem).u), random])[0]
+
+
 @pytest.mark.slow
 def test_inner_spread_is_nil_on_a_clean_target_and_not_on_a_rough_one(tmp_path):
     """Letter A through random-plus-answer bases: the surrogate's inner fits at the
@@ -160,9 +167,7 @@ def test_inner_spread_is_nil_on_a_clean_target_and_not_on_a_rough_one(tmp_path):
 
     source, target = letter_case(tmp_path, 0.25, 0.35)
     problem = InverseProblem(load_scene(source, [f"target.surface='{target}'"]))
-    rng = np.random.default_rng(1)
-    W = np.linalg.qr(np.c_[problem.forward.on_loaded(estimate(problem).u),
-                           rng.standard_normal((problem.force_dofs, 5))])[0]
+    W = answer_and_random_bases(problem)
     alone = "optimizer.matched_motion='off'"  # W spans the answer: the starts' spread is scaled to its modes
     rough = noisy_copy(target, tmp_path / "rough.vtp", 0.3 * read_surface(target, 2).mean_edge, np.random.default_rng(3))
     spreads = []
@@ -195,8 +200,7 @@ def test_the_answer_without_the_matched_motion_is_found_on_the_surrogate(tmp_pat
     source, target = letter_case(tmp_path, 0.25, 0.35)
     rough = noisy_copy(target, tmp_path / "rough.vtp", 0.3 * read_surface(target, 2).mean_edge, np.random.default_rng(3))
     problem = InverseProblem(load_scene(source, [f"target.surface='{target}'"]))
-    W = np.linalg.qr(np.c_[problem.forward.on_loaded(estimate(problem).u),
-                           np.random.default_rng(1).standard_normal((problem.force_dofs, 5))])[0]
+    W = answer_and_random_bases(problem)
     answers = {}
     for mode in ("on", "off"):
         scene = load_scene(source, [f"target.surface='{rough}'", f"optimizer.matched_motion='{mode}'"])
@@ -350,8 +354,7 @@ def test_one_factorization_gives_the_answer_of_two(tmp_path, monkeypatch):
     source, target = letter_case(tmp_path, 0.25, 0.35)
     # W spans the answer; without the matched motion Phi* keeps digits above the refinement's tolerance
     problem = InverseProblem(load_scene(source, [f"target.surface='{target}'", "optimizer.matched_motion='off'"]))
-    rng = np.random.default_rng(1)
-    W = np.linalg.qr(np.c_[problem.forward.on_loaded(estimate(problem).u), rng.standard_normal((problem.force_dofs, 5))])[0]
+    W = answer_and_random_bases(problem)
     monkeypatch.setattr(profile_module, "refine", lambda *args, budget=None, **kwargs: refine(*args, **kwargs))
     reduced = InverseProblem(problem.scene)
     borrowed = estimate(reduced, basis=W)
@@ -379,8 +382,7 @@ def test_the_scan_fits_loosely_and_the_answer_stays(tmp_path, monkeypatch):
 
     source, target = letter_case(tmp_path, 0.25, 0.35)
     problem = InverseProblem(load_scene(source, [f"target.surface='{target}'", "optimizer.matched_motion='off'"]))
-    rng = np.random.default_rng(1)
-    W = np.linalg.qr(np.c_[problem.forward.on_loaded(estimate(problem).u), rng.standard_normal((problem.force_dofs, 5))])[0]
+    W = answer_and_random_bases(problem)
     scans: list[tuple[list, int]] = []
     iterations, fitted_tightly = [0], [False]
     real_scan, real_fit = outer_module.surrogate_scan, inner_module.GaussNewton.fit
@@ -423,8 +425,7 @@ def test_the_start_is_fitted_loosely_and_is_never_the_answer(tmp_path, monkeypat
     source, target = letter_case(tmp_path, 0.25, 0.35)
     overrides = [f"target.surface='{target}'", "optimizer.matched_motion='off'"]
     problem = InverseProblem(load_scene(source, overrides))
-    rng = np.random.default_rng(1)
-    W = np.linalg.qr(np.c_[problem.forward.on_loaded(estimate(problem).u), rng.standard_normal((problem.force_dofs, 5))])[0]
+    W = answer_and_random_bases(problem)
     tolerances: list[float] = []
     real_fit = inner_module.GaussNewton.fit
 
