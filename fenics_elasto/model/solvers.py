@@ -466,11 +466,12 @@ class _SetUpAside:
     def __init__(self, ksp: PETSc.KSP):
         library = _petsc_library()
         assert library is not None  # _releases_the_gil found it
-        start, self._outcome = time.perf_counter(), {"code": 1, "seconds": 0.0}
+        start = time.perf_counter()
+        self.code, self.seconds = 1, 0.0  # an error until the set-up says otherwise
 
         def set_up() -> None:
-            self._outcome["code"] = library.KSPSetUp(ksp.handle)
-            self._outcome["seconds"] = time.perf_counter() - start
+            self.code = library.KSPSetUp(ksp.handle)
+            self.seconds = time.perf_counter() - start
 
         self._thread = threading.Thread(target=set_up, name="factorization")
         self._thread.start()
@@ -481,7 +482,7 @@ class _SetUpAside:
     def wait(self) -> tuple[int, float]:
         """(PETSc's error code, the set-up's seconds), once it has ended."""
         self._thread.join()
-        return int(self._outcome["code"]), float(self._outcome["seconds"])
+        return self.code, self.seconds
 
 
 @functools.cache
