@@ -54,7 +54,8 @@ class ElasticModel:
     def solvers(self) -> SolverCache:
         dofs = self.dofs
         modes = lambda: rigid_body_modes(dofs.dof_coords[: dofs.n_owned_blocks], dofs.comm)  # noqa: E731
-        return SolverCache(self.settings, self.stats, self.stiffness.constrained, modes, self._cache_size)
+        return SolverCache(self.settings, self.stats, self.stiffness.constrained, modes, self._cache_size,
+                           self.stiffness.at_once)
 
     def factorize(self, c, clamped: np.ndarray) -> LinearSolver:
         """A ready solver of K(c) with the clamped DOFs eliminated (a MUMPS factorization,

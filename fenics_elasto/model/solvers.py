@@ -28,10 +28,12 @@ Every K here is sum_j c_j M_j with identity rows and columns on the clamped DOFs
   factors (``SolverCache.closest``, ``DirectSolver.apply_factors``) precondition the
   reduced estimate's refinement at its optimum (surrogate.MaterialSurrogate.refine).
 * **ahead** (a reduced estimate's one factorization, ``SolverCache.ahead``): serial, the
-  factorization runs in a thread of its own through PETSc's C library, which lets go of
-  the GIL, while the estimate sets itself up (matching, the surrogate's pieces) on the
-  other core; its first solve waits for it. The default phantom at rank 80: 49.4 -> 47.7 s
-  (docs: performance, "The factorization beside the set-up").
+  memory check and the factorization run in a thread of its own through PETSc's C
+  library, which lets go of the GIL, on K assembled at once (``AffineStiffness.at_once``),
+  while the estimate sets itself up (the affine terms, matching, the surrogate's pieces)
+  on the other core; its first solve waits for it. The default phantom at rank 80:
+  49.4 -> 47.7 s, and the factors ready ~1 s sooner again with K at once (docs:
+  performance, "The factorization beside the set-up").
 * **auto**: direct up to ``DIRECT_LIMIT`` DOFs, iterative beyond (the crossover measured
   by benchmarks/scale.py on a 2-core, 24 GB machine).
 
@@ -49,7 +51,8 @@ MUMPS's analysis alone (the numeric phase refused at once with a 1 MB workspace 
 says how much memory the factors will take; more than ``MEMORY_SHARE`` of what the
 machine has available (per node: the busiest rank's estimate times the ranks there)
 ends the run in one line -- Linux's OOM killer otherwise ends it without a word (it
-did, at 500k DOFs on 24 GB). After every factorization: MUMPS INFOG(1) (PETSc does not raise when MUMPS
+did, at 500k DOFs on 24 GB); started ``ahead``, the check runs in the factorization's
+thread and its error is raised at the first solve. After every factorization: MUMPS INFOG(1) (PETSc does not raise when MUMPS
 fails; a ``preonly`` solve then returns Inf). After every solve: the KSP converged
 reason, the residual and a finite solution. A failure raises ``SolverError`` (a
 UserError: the command line prints one line naming the cause and the remedy, exit 2).
@@ -217,11 +220,12 @@ def mumps_failure(infog1: int, infog2: int, dofs: int) -> SolverError:
     return SolverError(f"{where}: {cause}")
 
 
-def mumps_analysis(K: PETSc.Mat, factor: str = "lu") -> dict:
+def mumps_analysis(K: PETSc.Mat, factor: str = "lu", set_up: Callable = PETSc.KSP.setUp) -> dict:
     """MUMPS's analysis of K alone, no numeric phase: a throwaway KSP with a 1 MB
     workspace cap, so the factorization stops at once (INFOG(1) = -19). Its estimates:
     in-core factorization memory in MB (10^6 bytes) on the busiest rank, INFOG(16), and
-    over all ranks, INFOG(17); flops, RINFOG(1); and INFOG(1) itself."""
+    over all ranks, INFOG(17); flops, RINFOG(1); and INFOG(1) itself. ``set_up``: how
+    the KSP is set up (``_SetUpAside`` does it without the GIL)."""
     ksp = _new_ksp(K)
     ksp.setType("preonly")
     pc = ksp.getPC()
@@ -230,18 +234,18 @@ def mumps_analysis(K: PETSc.Mat, factor: str = "lu") -> dict:
     pc.setFactorSetUpSolverType()
     F = pc.getFactorMatrix()
     F.setMumpsIcntl(23, 1)
-    ksp.setUp()
+    set_up(ksp)
     out = {"busiest MB": F.getMumpsInfog(16), "total MB": F.getMumpsInfog(17), "flops": F.getMumpsRinfog(1),
            "infog1": F.getMumpsInfog(1)}
     ksp.destroy()
     return out
 
 
-def factor_memory(K: PETSc.Mat, factor: str) -> float:
+def factor_memory(K: PETSc.Mat, factor: str, set_up: Callable = PETSc.KSP.setUp) -> float:
     """Bytes MUMPS's analysis of K says its in-core factorization needs on the busiest
     node: the busiest rank's estimate times the ranks sharing its node, capped by the
     total."""
-    analysis = mumps_analysis(K, factor)
+    analysis = mumps_analysis(K, factor, set_up)
     busiest, total = analysis["busiest MB"], analysis["total MB"]
     node = K.getComm().tompi4py().Split_type(MPI.COMM_TYPE_SHARED)
     ranks_here = node.Get_size()
@@ -249,12 +253,13 @@ def factor_memory(K: PETSc.Mat, factor: str) -> float:
     return 1e6 * min(busiest * ranks_here, total)
 
 
-def check_factor_fits(K: PETSc.Mat, factor: str, dofs: int, need: float | None = None) -> float:
+def check_factor_fits(K: PETSc.Mat, factor: str, dofs: int, need: float | None = None,
+                      set_up: Callable = PETSc.KSP.setUp) -> float:
     """A SolverError, the same on every rank, if the factors would not fit in the memory
     available now; else the bytes they need (``need``: known already, from the analysis
-    of a matrix with K's pattern, which is all it depends on)."""
+    of a matrix with K's pattern, which is all it depends on; ``set_up``: mumps_analysis's)."""
     comm = K.getComm().tompi4py()
-    need = factor_memory(K, factor) if need is None else need
+    need = factor_memory(K, factor, set_up) if need is None else need
     have = available_memory()
     if comm.allreduce(need > MEMORY_SHARE * have, op=MPI.LOR):
         need, have = comm.allreduce(need, op=MPI.MAX), comm.allreduce(have, op=MPI.MIN)
@@ -307,6 +312,24 @@ class LinearSolver:
         self.K.destroy()
 
 
+def _use_mumps(ksp: PETSc.KSP, settings: SolverSettings, dofs: int) -> None:
+    """The KSP a direct solve of its operator by MUMPS, with the settings' factor and
+    block low-rank tolerance; a user's -elasto_mat_mumps_icntl_27 still wins."""
+    ksp.setType("preonly")
+    pc = ksp.getPC()
+    pc.setType(settings.factor)
+    pc.setFactorSolverType("mumps")
+    if settings.factor == "cholesky":
+        ksp.getOperators()[0].setOption(PETSc.Mat.Option.SPD, True)
+    ksp.setFromOptions()
+    pc.setFactorSetUpSolverType()
+    F = pc.getFactorMatrix()
+    F.setMumpsIcntl(27, -rhs_blocking(dofs))
+    if settings.blr > 0:
+        F.setMumpsIcntl(35, 2)  # block low-rank in factorization and solve
+        F.setMumpsCntl(7, settings.blr)  # dropping tolerance of the low-rank blocks
+
+
 class DirectSolver(LinearSolver):
     """MUMPS LU or Cholesky; analysis kept across refreshes; solutions refined to rtol.
     Above MEMORY_CHECK_DOFS the factors must fit the memory available first
@@ -314,28 +337,20 @@ class DirectSolver(LinearSolver):
 
     def __init__(self, K, clamped, settings, stats, factor_need: float | None = None, ahead: bool = False):
         super().__init__(K, clamped, settings, stats)
-        self.ksp.setType("preonly")
-        pc = self.ksp.getPC()
-        pc.setType(settings.factor)
-        pc.setFactorSolverType("mumps")
-        if settings.factor == "cholesky":
-            K.setOption(PETSc.Mat.Option.SPD, True)
-        self.ksp.setFromOptions()
-        pc.setFactorSetUpSolverType()
-        F = pc.getFactorMatrix()
-        F.setMumpsIcntl(27, -rhs_blocking(self.dofs))  # a user's -elasto_mat_mumps_icntl_27 still wins
-        if settings.blr > 0:
-            F.setMumpsIcntl(35, 2)  # block low-rank in factorization and solve
-            F.setMumpsCntl(7, settings.blr)  # dropping tolerance of the low-rank blocks
+        _use_mumps(self.ksp, settings, self.dofs)
         self._analysed = False
-        self._pending: _SetUpAside | None = None  # the factorization under way (``ahead``)
+        self._pending: _SetUpAside | None = None  # the memory check and factorization under way (``ahead``)
         self.factor_need = factor_need
-        if self.dofs > MEMORY_CHECK_DOFS:
-            self.factor_need = check_factor_fits(K, settings.factor, self.dofs, factor_need)
         if ahead and _releases_the_gil(self.comm):  # its first use waits for it (_settle)
-            self._pending = _SetUpAside(self.ksp)
+            self._pending = _SetUpAside(self.ksp, self._check_fits)
         else:
+            self._check_fits()
             self._setup()
+
+    def _check_fits(self, set_up: Callable = PETSc.KSP.setUp) -> None:
+        """Above MEMORY_CHECK_DOFS, a SolverError if the factors would not fit (check_factor_fits)."""
+        if self.dofs > MEMORY_CHECK_DOFS:
+            self.factor_need = check_factor_fits(self.K, self.settings.factor, self.dofs, self.factor_need, set_up)
 
     def _setup(self) -> None:
         start = time.perf_counter()
@@ -353,8 +368,8 @@ class DirectSolver(LinearSolver):
         """Wait for a factorization started ahead, and check it as ``_setup`` does."""
         if self._pending is None:
             return
-        code, seconds = self._pending.wait()
-        self._pending = None
+        pending, self._pending = self._pending, None  # waited for once, whatever it raises
+        code, seconds = pending.wait()
         if code != 0:
             self._setup()  # again through petsc4py: its exception carries PETSc's message
             return
@@ -460,16 +475,25 @@ class DirectSolver(LinearSolver):
 class _SetUpAside:
     """A KSP's set-up (its factorization) in a thread of its own, through PETSc's C
     library: ctypes lets go of the GIL, where petsc4py holds it throughout, so the caller
-    goes on meanwhile. The thread is not a daemon: a process that ends meanwhile waits
-    for it before PETSc is finalized."""
+    goes on meanwhile. ``check(set_up)``: run first in the thread, its own KSP set up the
+    same way (DirectSolver._check_fits: MUMPS's analysis alone, 0.7 s at the phantom's
+    116k DOFs); where it raises, no factorization, and ``wait`` raises the same. The
+    thread is not a daemon: a process that ends meanwhile waits for it before PETSc is
+    finalized."""
 
-    def __init__(self, ksp: PETSc.KSP):
+    def __init__(self, ksp: PETSc.KSP, check: Callable[[Callable], None]):
         library = _petsc_library()
         assert library is not None  # _releases_the_gil found it
         start = time.perf_counter()
         self.code, self.seconds = 1, 0.0  # an error until the set-up says otherwise
+        self.refused: Exception | None = None
 
         def set_up() -> None:
+            try:
+                check(lambda other: library.KSPSetUp(other.handle))
+            except Exception as error:  # noqa: BLE001 -- raised again in the caller's thread (wait)
+                self.refused = error
+                return
             self.code = library.KSPSetUp(ksp.handle)
             self.seconds = time.perf_counter() - start
 
@@ -480,8 +504,11 @@ class _SetUpAside:
         return self._thread.is_alive()
 
     def wait(self) -> tuple[int, float]:
-        """(PETSc's error code, the set-up's seconds), once it has ended."""
+        """(PETSc's error code, the set-up's seconds), once it has ended; the check's
+        exception where it refused."""
         self._thread.join()
+        if self.refused is not None:
+            raise self.refused
         return self.code, self.seconds
 
 
@@ -721,9 +748,10 @@ class SolverCache:
     """
 
     def __init__(self, settings: SolverSettings, stats: SolverStats, stiffness: Callable,
-                 near_nullspace: Callable, size: int = 2):
+                 near_nullspace: Callable, size: int = 2, at_once: Callable | None = None):
         self.settings, self.stats, self.size = settings, stats, size
         self.stiffness = stiffness  # (c, clamped, out=None) -> K with identity rows on clamped
+        self.at_once = at_once or stiffness  # (c, clamped) -> the same K, the quickest way from nothing (``ahead``)
         self.near_nullspace = near_nullspace  # () -> PETSc.NullSpace, built on first need
         self._modes = None
         self._solvers: OrderedDict = OrderedDict()
@@ -758,7 +786,7 @@ class SolverCache:
         method, or where K(c) is cached or the cache is full."""
         key = self._key(c, clamped)
         if self.stats.method == "direct" and key not in self._solvers and len(self._solvers) < self.size:
-            self._solvers[key] = self._new(self.stiffness(c, clamped), clamped, ahead=True)
+            self._solvers[key] = self._new(self.at_once(c, clamped), clamped, ahead=True)
 
     def nearby(self, c, clamped: np.ndarray, rtol: float | None = None) -> NearbySolver | None:
         """A NearbySolver for K(c) on the factors ``closest`` finds (to ``rtol`` if given,
@@ -797,13 +825,21 @@ class SolverCache:
 
     def _new(self, K: PETSc.Mat, clamped: np.ndarray, ahead: bool = False) -> LinearSolver:
         if self.stats.method == "direct":
-            solver = DirectSolver(K, clamped, self.settings, self.stats, self._factor_need.get(clamped.tobytes()), ahead)
-            self._factor_need[clamped.tobytes()] = solver.factor_need
+            solver = DirectSolver(K, clamped, self.settings, self.stats, self._known_need(clamped), ahead)
+            self._factor_need[clamped.tobytes()] = solver.factor_need  # None while an ``ahead`` check runs
             return solver
         if self._modes is None:
             self._modes = self.near_nullspace()
         warm = self._warm.setdefault(clamped.tobytes(), WarmStart(K.getComm().tompi4py()))
         return IterativeSolver(K, clamped, self.settings, self.stats, self._modes, warm)
+
+    def _known_need(self, clamped: np.ndarray) -> float | None:
+        """The bytes the factors of K with this clamped set need, where an analysis said
+        so already (kept, or in a cached solver whose check ran beside its caller)."""
+        pattern = clamped.tobytes()
+        needs = [self._factor_need.get(pattern)] + [solver.factor_need for (_, p), solver in self._solvers.items()
+                                                    if p == pattern and isinstance(solver, DirectSolver)]
+        return next((need for need in needs if need is not None), None)
 
     @contextmanager
     def one_at_a_time(self) -> Iterator[None]:

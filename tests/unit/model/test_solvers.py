@@ -363,6 +363,26 @@ def test_a_factorization_started_ahead_runs_beside_the_caller(phantom_p1, petsc_
         _solve_at(failing, scene, E, _load(failing))
 
 
+def test_the_memory_check_of_a_factorization_started_ahead_raises_at_its_first_solve(phantom_p1, monkeypatch):
+    """factorize_ahead runs the memory check (MUMPS's analysis) in the factorization's
+    thread, not before it: a K whose factors would not fit returns at once and its
+    first solve raises the check's error, with nothing factorized."""
+    import fenics_elasto.model.solvers as solvers
+
+    scene = phantom_p1
+    E = np.array([40.0])
+    model = ElasticModel(scene, SolverSettings(method="direct"))
+    clamped = model.dofs.clamped_dofs(scene.fixed)
+    c = model.stiffness.coefficients(E, material_values(scene)[1])
+    monkeypatch.setattr(solvers, "MEMORY_CHECK_DOFS", 0)
+    monkeypatch.setattr(solvers, "available_memory", lambda: 1e3)
+    model.factorize_ahead(c, clamped)
+    assert model.solvers.get(c, clamped)._pending is not None
+    with pytest.raises(SolverError, match=r"the direct factorization of K \([\d,]+ DOFs\) needs ~"):
+        _solve_at(model, scene, E, _load(model))
+    assert model.factorizations == 0
+
+
 def test_cli_failed_factorization_is_one_line_and_exit_2(scenes, tmp_path, monkeypatch):
     monkeypatch.setenv("PETSC_OPTIONS", "-elasto_mat_mumps_icntl_23 1")
     proc = run_cli("simulate", scenes["cantilever"], "--out", tmp_path / "out", "--set", "solver.method='direct'")

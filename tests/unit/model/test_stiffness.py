@@ -26,6 +26,27 @@ def test_fixed_stiffness_is_the_affine_sum_at_its_materials(phantom_p1):
     assert len(fixed.terms) == 1 and len(affine.terms) == 2 * len(phantom_p1.materials)
 
 
+def test_k_at_once_is_the_constrained_sum_in_its_pattern(phantom_p1):
+    """at_once (a factorization started before the terms exist): K in one pass equals
+    the terms' constrained sum, and shares its pattern, so the solver holding it is
+    refilled from the terms in place at other materials; the terms then reuse its
+    pattern matrix instead of making their own."""
+    E, nu = material_values(phantom_p1)
+    model = ElasticModel(phantom_p1)
+    stiffness, clamped = model.stiffness, model.dofs.clamped_dofs(phantom_p1.fixed)
+    c = stiffness.coefficients(E, nu)
+    K = stiffness.at_once(c, clamped)
+    assert "_assembled" not in vars(stiffness) and stiffness._pattern is not None
+    summed = stiffness.constrained(c, clamped)
+    assert stiffness._pattern is None  # taken over by the terms
+    assert K.getInfo()["nz_allocated"] == summed.getInfo()["nz_allocated"]
+    summed.axpy(-1.0, K)
+    assert summed.norm() < 1e-13 * K.norm()
+    stiffness.constrained(2.0 * c, clamped, out=K)  # same pattern: refilled in place
+    K.axpy(-1.0, stiffness.constrained(2.0 * c, clamped))
+    assert K.norm() == 0.0
+
+
 def test_simulation_with_its_own_model_equals_a_shared_affine_one(phantom_p1):
     own = simulate(phantom_p1)
     shared = simulate(phantom_p1, ElasticModel(phantom_p1))
