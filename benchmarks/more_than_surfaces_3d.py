@@ -15,7 +15,9 @@ adds one kind of data:
   (the tissue started at half its truth);
 - a displacement field: 20,000 vertices of the truth's mesh with their displacement and
   a smooth 1 % error, noise stated; the same with independent 1 % noise per sample; and
-  ~10^5 samples of it (each point jittered by 1 mm twelve times) for the cost of a dense field.
+  ~10^5 samples of it (each point jittered by 1 mm twelve times) for the cost of a dense
+  field; and the independent one alone, no surfaces (not an addition: the field carrying
+  the estimate by itself).
 
     .venv/bin/python benchmarks/more_than_surfaces_3d.py [--out DIR] [--set KEY=VALUE ...] [--noise STD] [--far H]
 
@@ -34,6 +36,7 @@ import json
 import re
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -62,9 +65,10 @@ def noisy_field(path: Path, out: Path, share: float, smooth: bool = True) -> tup
     return out, std
 
 
-def dense_field(path: Path, out: Path, share: float, problem: Path, copies: int = 12) -> Path:
+def dense_field(path: Path, out: Path, share: float, problem: Path, copies: int = 12) -> tuple[Path, float]:
     """~10^5 samples: the field's points jittered by 1 mm ``copies`` times, each keeping its
-    vector, with independent noise of ``share`` x the largest; those inside the source kept."""
+    vector, with independent noise of ``share`` x the largest; those inside the source
+    kept; (file, std)."""
     import pyvista as pv
     from fenics_elasto.model.observation import farther_than
     from fenics_elasto.model.scene import load_scene
@@ -73,12 +77,13 @@ def dense_field(path: Path, out: Path, share: float, problem: Path, copies: int 
     u, points = np.asarray(cloud["displacement"]), np.asarray(cloud.points, float)
     rng = np.random.default_rng(1)
     points = np.concatenate([points + rng.normal(0.0, 0.1, points.shape) for _ in range(copies)])
-    u = np.tile(u, (copies, 1)) + share * float(np.linalg.norm(u, axis=1).max()) * rng.standard_normal(points.shape)
+    std = share * float(np.linalg.norm(u, axis=1).max())
+    u = np.tile(u, (copies, 1)) + std * rng.standard_normal(points.shape)
     inside = ~farther_than(load_scene(problem).mesh, 0.0, points)
     dense = pv.PolyData(points[inside])
     dense["displacement"] = u[inside]
     dense.save(out)
-    return out
+    return out, std
 
 
 GROUPS = ("bladder", "prostate_surface", "rectum")
@@ -91,35 +96,44 @@ def segmented(files: dict, out: Path, std: float, seed: int) -> dict:
     return {**files, **{g: ind.noisy_copy(files[g], out / f"{g}.vtp", std, rng) for g in GROUPS}}
 
 
-def rows(filled: dict, emptied: dict, probe: dict, out: Path, problem: Path) -> dict[str, list[str]]:
+def rows(filled: dict, emptied: dict, probe: dict, out: Path, problem: Path) -> dict[str, Callable[[], list[str]]]:
+    """Each row's --set values, made when the row runs (a field's files only then)."""
     surfaces = lambda files: "surfaces={" + ", ".join(  # noqa: E731
         f"{g}='{files[g]}'" for g in GROUPS) + "}"
-    force = np.array(json.loads(Path(filled["forces"]).read_text())["rectum"])
-    noise = 0.02 * float(np.linalg.norm(force))
-    field, field_std = noisy_field(Path(filled["field"]), out / "field_noisy.vtp", 0.01)
-    independent, _ = noisy_field(Path(filled["field"]), out / "field_independent.vtp", 0.01, smooth=False)
-    dense = dense_field(Path(filled["field"]), out / "field_dense.vtp", 0.01, problem)
+    filled_only = f"target={{{surfaces(filled)}}}"
+
+    def force() -> list[str]:
+        value = np.array(json.loads(Path(filled["forces"]).read_text())["rectum"])
+        return [filled_only, "materials.tissue.E={estimate=true, initial=5.0, bounds=[0.5, 100.0]}",
+                f"boundary.measured_force.rectum={{value={value.tolist()}, noise={0.02 * float(np.linalg.norm(value))}}}"]
+
+    def field(kind: str, beside: str = f"{surfaces(filled)}, ") -> list[str]:
+        truth = Path(filled["field"])
+        if kind == "dense":
+            path, std = dense_field(truth, out / "field_dense.vtp", 0.01, problem)
+        else:
+            path, std = noisy_field(truth, out / f"field_{kind}.vtp", 0.01, smooth=kind == "noisy")
+        return [f"target={{{beside}displacement='{path}', displacement_noise={std}}}"]
+
     return {
-        "surfaces only": [f"target={{{surfaces(filled)}}}"],
-        "+ 4 fiducials": [f"target={{{surfaces(filled)}, landmarks='{filled['fiducials']}'}}"],
-        "+ a second state": [f"states=[{{name='filled', target={{{surfaces(filled)}}}}}, "
-                             f"{{name='emptied', target={{{surfaces(emptied)}}}}}]"],
-        "the second state alone": [f"target={{{surfaces(emptied)}}}"],
-        "+ a probe state": [f"states=[{{name='filled', target={{{surfaces(filled)}}}}}, "
-                            f"{{name='probe', target={{{surfaces(probe)}}}}}]"],
-        "the probe state alone": [f"target={{{surfaces(probe)}}}"],
-        "+ a force (2 %)": [f"target={{{surfaces(filled)}}}",
-                            "materials.tissue.E={estimate=true, initial=5.0, bounds=[0.5, 100.0]}",
-                            f"boundary.measured_force.rectum={{value={force.tolist()}, noise={noise}}}"],
-        "+ a field (1 %)": [f"target={{{surfaces(filled)}, displacement='{field}', displacement_noise={field_std}}}"],
-        "+ a field (1 %, independent)": [f"target={{{surfaces(filled)}, displacement='{independent}', "
-                                         f"displacement_noise={field_std}}}"],
-        "+ a field (1 %, independent, 10^5 samples)": [
-            f"target={{{surfaces(filled)}, displacement='{dense}', displacement_noise={field_std}}}"],
+        "surfaces only": lambda: [filled_only],
+        "+ 4 fiducials": lambda: [f"target={{{surfaces(filled)}, landmarks='{filled['fiducials']}'}}"],
+        "+ a second state": lambda: [f"states=[{{name='filled', target={{{surfaces(filled)}}}}}, "
+                                     f"{{name='emptied', target={{{surfaces(emptied)}}}}}]"],
+        "the second state alone": lambda: [f"target={{{surfaces(emptied)}}}"],
+        "+ a probe state": lambda: [f"states=[{{name='filled', target={{{surfaces(filled)}}}}}, "
+                                    f"{{name='probe', target={{{surfaces(probe)}}}}}]"],
+        "the probe state alone": lambda: [f"target={{{surfaces(probe)}}}"],
+        "+ a force (2 %)": force,
+        "+ a field (1 %)": lambda: field("noisy"),
+        "+ a field (1 %, independent)": lambda: field("independent"),
+        "+ a field (1 %, independent, 10^5 samples)": lambda: field("dense"),
+        "a field alone (1 %, independent)": lambda: field("independent", beside=""),
     }
 
 
 def run(out: Path, extra: list[str], only: list[str], noise: float = 0.0, far: float | None = None) -> None:
+    out = out.resolve()  # the rows' file names are read relative to the problem's folder
     out.mkdir(parents=True, exist_ok=True)
     problem = ind.plain_source(out / "sources", 2, **({"far": far} if far else {}))
     bases = problem.parent / "bases.npz"
@@ -137,9 +151,10 @@ def run(out: Path, extra: list[str], only: list[str], noise: float = 0.0, far: f
         out = out / f"far_{far:g}"
     out.mkdir(parents=True, exist_ok=True)
     table, base = [], None
-    for name, sets in rows(filled, emptied, probe, out, problem).items():
+    for name, make in rows(filled, emptied, probe, out, problem).items():
         if only and name not in only:
             continue
+        sets = make()
         folder = out / re.sub(r"[(),]", "", name.replace(" ", "_").replace("+", "plus").replace("%", "pc"))
         args = ["estimate", str(problem), "--out", str(folder), "--set", f"reduction={{bases='{bases}'}}"]
         for s in sets + extra:

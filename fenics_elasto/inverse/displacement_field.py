@@ -87,12 +87,6 @@ def _means(cube: np.ndarray, counts: np.ndarray, a: np.ndarray) -> np.ndarray:
     return _sums(cube, len(counts), a) / counts[:, None]
 
 
-def aggregate(points: np.ndarray, vectors: np.ndarray, length: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(mean points, mean vectors, sample counts), one row per occupied cube of side ``length``."""
-    cube, counts = cubes(points, length)
-    return _means(cube, counts, points), _means(cube, counts, vectors), counts
-
-
 MEMBERS = 50_000  # the most points a field's model means are taken at (PointProbe's set-up: ~0.05 ms a point)
 
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fenics_elasto.inverse.displacement_field import aggregate, correlated_over
+from fenics_elasto.inverse.displacement_field import correlated_over, cubes
 
 CELL = 0.5
 
@@ -15,9 +15,16 @@ def samples(count: int = 20000, seed: int = 0) -> np.ndarray:
     return np.random.default_rng(seed).uniform(0.0, 10.0, (count, 3))
 
 
+def cube_means(points: np.ndarray, vectors: np.ndarray, side: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(mean points, mean vectors, sample counts), one row per occupied cube of ``side``."""
+    cube, counts = cubes(points, side)
+    mean = lambda a: np.stack([np.bincount(cube, a[:, c]) for c in range(a.shape[1])], axis=1) / counts[:, None]  # noqa: E731
+    return mean(points), mean(vectors), counts
+
+
 def cell_means(points: np.ndarray, error: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The observations as the estimate makes them: one per cube of CELL."""
-    p, e, _ = aggregate(points, error, CELL)
+    p, e, _ = cube_means(points, error, CELL)
     return p, e
 
 
@@ -44,10 +51,12 @@ def test_a_smooth_error_is_shared_over_cubes_of_its_own_size(wavelength, at_leas
     assert length <= wavelength, length  # not beyond its own waves
 
 
-def test_aggregate_means_each_cube():
+def test_cubes_group_the_samples_by_the_cube_they_lie_in():
     points = np.array([[0.1, 0.1, 0.1], [0.2, 0.3, 0.1], [0.7, 0.1, 0.1]])
     vectors = np.array([[1.0, 0.0, 0.0], [3.0, 0.0, 0.0], [5.0, 1.0, 0.0]])
-    p, v, counts = aggregate(points, vectors, 0.5)
+    cube, _ = cubes(points, 0.5)
+    assert cube[0] == cube[1] != cube[2]
+    p, v, counts = cube_means(points, vectors, 0.5)
     order = np.argsort(p[:, 0])
     assert counts[order].tolist() == [2, 1]
     assert np.allclose(v[order], [[2.0, 0.0, 0.0], [5.0, 1.0, 0.0]])
