@@ -261,6 +261,8 @@ class MaterialSurrogate:
                 Y -= self.V @ self._dot_V(Y)
         s2, U = np.linalg.eigh(symmetric_blocks(blocks, lambda b: blocks[b], self._dot))
         keep = s2 > 1e-20 * max(squares, 1e-300)
+        if not keep.any():  # V holds them all (a snapshot solved again at a value it has)
+            return 0
         Q = times_over(blocks, U[:, keep] / np.sqrt(s2[keep]))
         for j, M in enumerate(self.terms):  # one product M_g q alive at a time
             crosses: list[np.ndarray] = []
