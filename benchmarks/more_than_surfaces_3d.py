@@ -32,6 +32,7 @@ keep 0.45): the lever the run names when the mesh part leads, as it does for a f
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import re
 import sys
@@ -49,20 +50,32 @@ from fenics_elasto.app.cli import main  # noqa: E402
 TRUTH = 50.0
 
 
-def inside_source(cloud, problem: Path):
-    """The cloud's points inside the source mesh: a truth vertex on a curved wall can lie
-    a hair outside the coarser source (gmsh's order-2 nodes move by ~1e-5 from run to
-    run), and a point file's sample outside the body is refused as bad input."""
-    import pyvista as pv
-    from fenics_elasto.model.observation import farther_than
+@functools.cache
+def _source_mesh(problem: Path):
     from fenics_elasto.model.scene import load_scene
 
-    mesh = load_scene(problem).mesh
-    points = np.asarray(cloud.points, float)
-    inside = ~farther_than(mesh, 1e-6 * float(np.ptp(mesh.geometry.x, axis=0).max()), points)  # the toolkit's tolerance
-    kept = pv.PolyData(points[inside])
-    kept["displacement"] = np.asarray(cloud["displacement"])[inside]
-    return kept
+    return load_scene(problem).mesh
+
+
+def inside(points: np.ndarray, problem: Path, tolerance: float | None = None) -> np.ndarray:
+    """Which points lie inside the source mesh (read once per run), within ``tolerance``:
+    by default the toolkit's own for a point file (1e-6 of the mesh's size). A truth
+    vertex on a curved wall can lie a hair outside the coarser source (gmsh's order-2
+    nodes move by ~1e-5 from run to run), and a sample outside the body is refused."""
+    from fenics_elasto.model.observation import farther_than
+
+    mesh = _source_mesh(problem)
+    if tolerance is None:
+        tolerance = 1e-6 * float(np.ptp(mesh.geometry.x, axis=0).max())
+    return ~farther_than(mesh, tolerance, points)
+
+
+def cloud_of(points: np.ndarray, displacement: np.ndarray):
+    import pyvista as pv
+
+    cloud = pv.PolyData(points)
+    cloud["displacement"] = displacement
+    return cloud
 
 
 def noisy_field(path: Path, out: Path, share: float, problem: Path, smooth: bool = True) -> tuple[Path, float]:
@@ -70,7 +83,9 @@ def noisy_field(path: Path, out: Path, share: float, problem: Path, smooth: bool
     smooth (a registration's kind) or independent per sample; (file, std)."""
     import pyvista as pv
 
-    cloud = inside_source(pv.read(path), problem)
+    truth = pv.read(path)
+    kept = inside(np.asarray(truth.points, float), problem)
+    cloud = cloud_of(np.asarray(truth.points, float)[kept], np.asarray(truth["displacement"])[kept])
     u = np.asarray(cloud["displacement"])
     std = share * float(np.linalg.norm(u, axis=1).max())
     points = np.asarray(cloud.points, float)
@@ -86,8 +101,6 @@ def dense_field(path: Path, out: Path, share: float, problem: Path, copies: int 
     vector, with independent noise of ``share`` x the largest; those inside the source
     kept; (file, std)."""
     import pyvista as pv
-    from fenics_elasto.model.observation import farther_than
-    from fenics_elasto.model.scene import load_scene
 
     cloud = pv.read(path)
     u, points = np.asarray(cloud["displacement"]), np.asarray(cloud.points, float)
@@ -95,10 +108,8 @@ def dense_field(path: Path, out: Path, share: float, problem: Path, copies: int 
     points = np.concatenate([points + rng.normal(0.0, 0.1, points.shape) for _ in range(copies)])
     std = share * float(np.linalg.norm(u, axis=1).max())
     u = np.tile(u, (copies, 1)) + std * rng.standard_normal(points.shape)
-    inside = ~farther_than(load_scene(problem).mesh, 0.0, points)
-    dense = pv.PolyData(points[inside])
-    dense["displacement"] = u[inside]
-    dense.save(out)
+    kept = inside(points, problem, 0.0)
+    cloud_of(points[kept], u[kept]).save(out)
     return out, std
 
 
