@@ -175,8 +175,9 @@ def surrogate_minimum(surrogate: SurrogateProfile, x0, xtol, known=(), smooth: b
     double from ``step``); on a rough one, Brent's search on values in such a bracket;
     else bounded L-BFGS-B. Within ``bounds`` (per constant, in s; the parameters' own by
     default)."""
-    # Each evaluation is a whole inner fit, exact only to the inner tolerance: stop once
-    # a step moves every constant by less than xtol / 10, not chase digits of Phi*.
+    # Each evaluation is a whole inner fit, exact only to the inner tolerance: cubic steps
+    # and L-BFGS-B stop once a step moves every constant by less than xtol / 10, not
+    # chase digits of Phi*; Brent's search stops on its bracket's width, xtol itself.
     bounds = surrogate.params.s_bounds() if bounds is None else bounds
     found = None
     if len(surrogate.params) == 1 and smooth:
