@@ -47,6 +47,7 @@ from fenics_elasto.inverse.report import record as result_record
 from fenics_elasto.inverse.surrogate import MaterialSurrogate, release
 from fenics_elasto.inverse.uncertainty.answer import AnswerUncertainty
 from fenics_elasto.inverse.uncertainty.identifiability import check_identifiable
+from fenics_elasto.inverse.uncertainty.mesh_error import HigherDegreeModel
 from fenics_elasto.inverse.uncertainty.parts import add_model_error, largest_part
 from fenics_elasto.inverse.uncertainty.posterior import posterior_record, target_offset
 from fenics_elasto.util.errors import require
@@ -329,10 +330,14 @@ def estimate(problem: InverseProblem, options: Options | None = None, basis: np.
         forward = problem.forward
         forward.model.factorize_ahead(forward.coefficients(problem.params.initial)[0], forward.clamped_boundary)
     estimator = Estimator(problem, options, basis)
+    # the degree-3 solve's set-up beside the factorization too (its first solve waits for it)
+    prepared = HigherDegreeModel.ahead(problem) if basis is not None else None
     try:
-        result = _run(estimator, warnings, extent_warnings, phi_undeformed, held_out, start)
+        result = _run(estimator, warnings, extent_warnings, phi_undeformed, held_out, start, prepared)
     finally:
         estimator.close()
+        if prepared is not None:
+            prepared.destroy()
     measured = measured_forces(scene)
     if measured:
         apply_measured_force(problem, result, measured)
@@ -340,8 +345,9 @@ def estimate(problem: InverseProblem, options: Options | None = None, basis: np.
 
 
 def _run(estimator: Estimator, warnings: list[str], extent_warnings: list[str], phi_undeformed: float,
-         held_out: float | None, start: float) -> EstimateResult:
-    """The estimator's run (to its best so far on Ctrl-C), its uncertainty and result.json's record."""
+         held_out: float | None, start: float, prepared: HigherDegreeModel | None = None) -> EstimateResult:
+    """The estimator's run (to its best so far on Ctrl-C), its uncertainty and result.json's
+    record (``prepared``: the degree-3 solve's set-up, made ahead)."""
     problem = estimator.problem
     interrupted = False
     try:
@@ -364,9 +370,9 @@ def _run(estimator: Estimator, warnings: list[str], extent_warnings: list[str], 
         estimator.uncertainty.profile_likelihood_interval(post)
     fit = fit_of_bases(estimator, theta, best, post, interrupted)
     if estimator.profile.surrogate is not None:  # its last use was the half-rank check (fit_of_bases)
-        release(estimator.profile.surrogate)  # the degree-3 matrix then reuses its memory
+        release(estimator.profile.surrogate)  # a degree-3 matrix made now reuses its memory
     if post is not None and not interrupted:
-        add_model_error(problem, post, theta, best.evaluation, estimator.profile.linearisation(best), fit)
+        add_model_error(problem, post, theta, best.evaluation, estimator.profile.linearisation(best), fit, prepared)
     uncertainty_seconds = time.perf_counter() - clock
     warnings = (warnings + estimator.uncertainty.warnings + run_warnings(estimator, theta, interrupted, fit, post)
                 + extent_warnings + target_warnings(problem, best, estimator.options.state_noise))

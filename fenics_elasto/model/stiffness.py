@@ -8,6 +8,7 @@ set of clamped DOFs is a linear combination plus ``zeroRowsColumns``.
 from __future__ import annotations
 
 import sys
+from collections.abc import Sequence
 from functools import cached_property
 
 import numpy as np
@@ -73,24 +74,29 @@ def kernel_options() -> dict:
     return {"cffi_extra_compile_args": ours + KERNEL_FLAGS}
 
 
-def stiffness_form(scene, V: fem.FunctionSpace, E, nu, jit_options: dict | None = None) -> fem.Form:
+def stiffness_form(scene, V: fem.FunctionSpace, E, nu, jit_options: dict | None = None,
+                   regions: Sequence[int] | None = None) -> fem.Form:
     """K's form on V with the materials (E, nu) per region: one matrix at fixed values.
     The Lame values are the form's constants, not literals in it: a literal is part of
     the form's signature, so every new material value compiled the kernels again -- 1.2 s
     of each estimate's degree-3 solve in `make demo` (18 estimates), and of every
-    simulation at new materials. ``jit_options``: dolfinx's, ``kernel_options()`` by default."""
+    simulation at new materials. ``jit_options``: dolfinx's, ``kernel_options()`` by default;
+    ``regions``: the indices of the materials whose cells it spans (all by default)."""
     mu, lam = lame(E, nu, scene.plane)
-    return lame_form(scene, V, mu, lam, jit_options)
+    return lame_form(scene, V, mu, lam, jit_options, regions)
 
 
-def lame_form(scene, V: fem.FunctionSpace, mu, lam, jit_options: dict | None = None) -> fem.Form:
+def lame_form(scene, V: fem.FunctionSpace, mu, lam, jit_options: dict | None = None,
+              regions: Sequence[int] | None = None) -> fem.Form:
     """``stiffness_form`` at the Lame values (mu, lambda) per region."""
     u, v = ufl.TrialFunction(V), ufl.TestFunction(V)
     mesh = scene.mesh
     dx = ufl.Measure("dx", domain=mesh, subdomain_data=scene.cell_tags, metadata=stiffness_quadrature(V))
-    return fem.form(sum(fem.Constant(mesh, 2.0 * float(m)) * ufl.inner(epsilon(u), epsilon(v)) * dx(material.tag)
-                        + fem.Constant(mesh, float(lm)) * ufl.div(u) * ufl.div(v) * dx(material.tag)
-                        for material, m, lm in zip(scene.materials, mu, lam)),
+    chosen = range(len(scene.materials)) if regions is None else regions
+    return fem.form(sum(fem.Constant(mesh, 2.0 * float(mu[i])) * ufl.inner(epsilon(u), epsilon(v))
+                        * dx(scene.materials[i].tag)
+                        + fem.Constant(mesh, float(lam[i])) * ufl.div(u) * ufl.div(v) * dx(scene.materials[i].tag)
+                        for i in chosen),
                     jit_options=kernel_options() if jit_options is None else jit_options)
 
 

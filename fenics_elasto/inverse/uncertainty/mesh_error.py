@@ -25,12 +25,13 @@ PETSc's P^T A P.)
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 import time
+from collections.abc import Sequence
+from dataclasses import replace
 
 import numpy as np
 import ufl
+from mpi4py import MPI
 from petsc4py import PETSc
 
 import dolfinx
@@ -42,6 +43,7 @@ from fenics_elasto.inverse.uncertainty.posterior import offset_shift
 from fenics_elasto.model.solvers import (DirectSolver, IterativeSolver, SolverSettings, SolverStats, TwoLevelSolver,
                                          WarmStart, rigid_body_modes)
 from fenics_elasto.model.stiffness import stiffness_form
+from fenics_elasto.util.budget import available_memory
 from fenics_elasto.util.logs import log
 
 # The correction the degree-3 solve finds is ~1 % of u (the phantom: 3e-3 of 0.3); its
@@ -51,59 +53,152 @@ from fenics_elasto.util.logs import log
 HIGHER_DEGREE_RTOL = 1e-6
 
 
+# Where a factorization runs ahead, the degree-3 set-up is made beside it if its matrix
+# takes at most this share of the memory free then (the phantom's: 0.46 GB).
+AHEAD_MEMORY_SHARE = 0.1
+# Entries per row of the degree-3 matrix, for that check: 141 on the phantom (3D, P3).
+HIGHER_ROW_ENTRIES = {2: 60, 3: 150}
+
+
+def mesh_error_wanted(scene) -> bool:
+    """``[uncertainty] mesh``: "on", "off", or "auto" -- in 3D only, where a P2 source of
+    curved organs put E 2-3 % off (2D estimates on data made elsewhere were within 0.6 %
+    without it, the letter's nu within 0.3 %)."""
+    mode = (scene.config.get("uncertainty") or {}).get("mesh", "auto")
+    return mode == "on" or (mode == "auto" and scene.gdim == 3)
+
+
+def higher_space(fields_space: fem.FunctionSpace) -> fem.FunctionSpace:
+    """Vector Lagrange elements one degree higher than ``fields_space``'s, on its mesh."""
+    mesh = fields_space.mesh
+    return fem.functionspace(mesh, ("Lagrange", fields_space.element.basix_element.degree + 1, (mesh.geometry.dim,)))
+
+
+class HigherDegreeModel:
+    """The part of the degree-(p+1) solve that does not depend on the answer, made once:
+    the space (p: the fields' space's degree), the walls' DOFs, the interpolation from
+    the fields' space, the observation there, and K_h's whole pattern with the regions
+    whose E and nu are both known already assembled into it (``known``, at (E, nu)).
+    ``solutions`` adds the other regions at the answer. An estimate whose factorization
+    runs ahead makes it meanwhile (``ahead``): on the phantom (rank 80) 2.8-3.1 s of the
+    degree-3 solve's 8.2 s moved beside MUMPS, which ended when it did without them; the
+    estimate took 48.3 s against 51.0 s (three alternating runs each), E and the mesh part
+    the same to the last digit.
+    ``blocked``: K_h by node (3 x 3) for the two-level cycle; AIJ for AMG."""
+
+    def __init__(self, scene, fields_space: fem.FunctionSpace, known: Sequence[int], E, nu, blocked: bool,
+                 observation=None, V: fem.FunctionSpace | None = None):
+        mesh = scene.mesh
+        self.scene, self.fields_space, self.known = scene, fields_space, list(known)
+        self.V = V or higher_space(fields_space)
+        self.held = fem.Function(self.V)  # the walls' values; K does not depend on them, the lifted load does
+        walls = scene.facets(list(scene.config["boundary"]["fixed"]) + list(scene.config["boundary"]["loaded"]))
+        self.bc = fem.dirichletbc(self.held, fem.locate_dofs_topological(self.V, mesh.topology.dim - 1, walls))
+        # Blocked by node for the two-level cycle: a third less index data to assemble and
+        # stream (the phantom's P3: assembly 2.6 -> 1.5 s, a product 0.046 -> 0.024 s; block
+        # SOR as fast). AMG keeps AIJ (not measured blocked).
+        kind = PETSc.Mat.Type.BAIJ if blocked else None
+        self.K = dolfinx.fem.petsc.create_matrix(stiffness_form(scene, self.V, E, nu), kind=kind)  # the whole pattern
+        if self.known:
+            dolfinx.fem.petsc.assemble_matrix(self.K, stiffness_form(scene, self.V, E, nu, regions=self.known),
+                                              bcs=[self.bc])
+        # Flushed, not final: a final assembly would squeeze the other regions' entries,
+        # never set yet, out of the pattern.
+        self.K.assemble(PETSc.Mat.AssemblyType.FLUSH)
+        self.interpolation = None
+        if blocked:
+            self.interpolation = dolfinx.fem.petsc.interpolation_matrix(fields_space, self.V)
+            self.interpolation.assemble()
+        self.observe = None if observation is None else observation.on_space(self.V)
+
+    @classmethod
+    def ahead(cls, problem) -> HigherDegreeModel | None:
+        """The set-up for ``problem``'s answer, the known regions assembled at their values;
+        None where the estimate will want no degree-3 solve or its matrix would take over
+        AHEAD_MEMORY_SHARE of the memory free now (it is then made at the answer)."""
+        scene = problem.scene
+        if not (mesh_error_wanted(scene) and list(scene.config["boundary"]["loaded"])):
+            return None
+        space = problem.forward.model.dofs.V
+        V = higher_space(space)
+        dofs = V.dofmap.index_map.size_local * V.dofmap.index_map_bs
+        fits = 8.0 * dofs * HIGHER_ROW_ENTRIES[scene.gdim] <= AHEAD_MEMORY_SHARE * available_memory()
+        if not scene.comm.allreduce(fits, op=MPI.LAND):
+            return None
+        E, nu = problem.params.materials(problem.params.initial)
+        known = [i for i, m in enumerate(scene.materials) if not (m.E.estimate or m.nu.estimate)]
+        return cls(scene, space, known, E, nu, blocked=True, observation=problem.observation, V=V)
+
+    def solutions(self, E, nu, fields: list[fem.Function], coarse: DirectSolver | None = None,
+                  stats: SolverStats | None = None) -> list[fem.Function]:
+        """The displacement in this space with the materials (E, nu) per region (the known
+        ones as made), clamped where the scene is, and every loaded wall held at each
+        field (several states: one each): one K and one CG for them all, each solve
+        started from its field itself (interpolated: CG finds only the correction), to
+        HIGHER_DEGREE_RTOL or the scene's tighter [solver] rtol. ``coarse``: the factors of
+        the fields' own K at these materials (or near them) with the same walls clamped,
+        which make CG's preconditioner a two-level cycle (model.solvers.TwoLevelSolver);
+        without them, AMG (model.solvers.IterativeSolver). ``stats``: where to count the
+        solves and CG iterations. K_h is the solve's from here on: call once."""
+        scene, V = self.scene, self.V
+        estimated = [i for i in range(len(scene.materials)) if i not in self.known]
+        if estimated:
+            dolfinx.fem.petsc.assemble_matrix(self.K, stiffness_form(scene, V, E, nu, regions=estimated), bcs=[self.bc])
+        self.K.assemble()
+        A, self.K = self.K, None
+        if coarse is None and "baij" in A.getType():  # made ahead, but no factors near the answer: AMG's kind
+            A.convert(PETSc.Mat.Type.AIJ)  # in place
+        indices, owned_count = self.bc.dof_indices()
+        start = WarmStart(scene.mesh.comm)
+        settings = SolverSettings.from_config(scene.config.get("solver"))
+        settings = replace(settings, rtol=max(settings.rtol, HIGHER_DEGREE_RTOL))
+        stats = stats or SolverStats("iterative")
+        if coarse is None:
+            owned = V.tabulate_dof_coordinates()[: V.dofmap.index_map.size_local, : scene.mesh.geometry.dim]
+            solver = IterativeSolver(A, indices[:owned_count], settings, stats,
+                                     rigid_body_modes(owned, scene.mesh.comm), start)
+        else:
+            interpolation, self.interpolation = self.interpolation, None  # the cycle's from here on: destroyed with it
+            if interpolation is None:
+                interpolation = dolfinx.fem.petsc.interpolation_matrix(self.fields_space, V)
+                interpolation.assemble()
+            solver = TwoLevelSolver(A, indices[:owned_count], settings, stats, start, coarse, interpolation)
+        form = stiffness_form(scene, V, E, nu)
+        try:
+            return [self._solve(form, u, solver, start) for u in fields]
+        finally:
+            solver.destroy()
+            log.debug(f"higher-degree solves: {stats.iterations} iterations of {solver.name}")
+
+    def _solve(self, form, u: fem.Function, solver, start: WarmStart) -> fem.Function:
+        """One field's solve: the walls held at u, started from u."""
+        self.held.interpolate(u)
+        start.seed(self.held.x.petsc_vec.array[:, None])
+        b = _lifted_load(form, self.bc, self.V)
+        solution = fem.Function(self.V)
+        try:
+            solver.solve(b, solution.x.petsc_vec)
+        finally:
+            b.destroy()
+        solution.x.scatter_forward()
+        return solution
+
+    def destroy(self) -> None:
+        for matrix in (self.K, self.interpolation):
+            if matrix is not None:
+                matrix.destroy()
+        self.K = self.interpolation = None
+
+
 def higher_degree_solutions(scene, E, nu, fields: list[fem.Function],
                             coarse: DirectSolver | None = None, stats: SolverStats | None = None
                             ) -> list[fem.Function]:
-    """The displacement one degree higher than the fields' space with the materials (E, nu)
-    per region, clamped where the scene is, and every loaded wall held at each field
-    (several states: one each): one K and one CG for them all, each solve started from
-    its field itself (interpolated: CG finds only the correction), to
-    HIGHER_DEGREE_RTOL or the scene's tighter [solver] rtol. ``coarse``: the factors of
-    the fields' own K at these materials (or near them) with the same walls clamped,
-    which make CG's preconditioner a two-level cycle (model.solvers.TwoLevelSolver);
-    without them, AMG (model.solvers.IterativeSolver). ``stats``: where to count the
-    solves and CG iterations."""
-    mesh = scene.mesh
-    V = fem.functionspace(mesh, ("Lagrange", fields[0].function_space.element.basix_element.degree + 1,
-                                 (mesh.geometry.dim,)))
-    held = fem.Function(V)  # the walls' values; K does not depend on them, the lifted load does
-    walls = scene.facets(list(scene.config["boundary"]["fixed"]) + list(scene.config["boundary"]["loaded"]))
-    bc = fem.dirichletbc(held, fem.locate_dofs_topological(V, mesh.topology.dim - 1, walls))
-    form = stiffness_form(scene, V, E, nu)
-    # Blocked by node (3 x 3) for the two-level cycle: a third less index data to assemble and
-    # stream (the phantom's P3: assembly 2.6 -> 1.5 s, a product 0.046 -> 0.024 s; block SOR as
-    # fast). AMG keeps AIJ (not measured blocked).
-    A = dolfinx.fem.petsc.assemble_matrix(form, bcs=[bc], kind=None if coarse is None else PETSc.Mat.Type.BAIJ)
-    A.assemble()
-    indices, owned_count = bc.dof_indices()
-    owned = V.tabulate_dof_coordinates()[: V.dofmap.index_map.size_local, : mesh.geometry.dim]
-    start = WarmStart(mesh.comm)
-    settings = SolverSettings.from_config(scene.config.get("solver"))
-    settings = replace(settings, rtol=max(settings.rtol, HIGHER_DEGREE_RTOL))
-    stats = stats or SolverStats("iterative")
-    if coarse is None:
-        solver = IterativeSolver(A, indices[:owned_count], settings, stats, rigid_body_modes(owned, mesh.comm), start)
-    else:
-        interpolation = dolfinx.fem.petsc.interpolation_matrix(fields[0].function_space, V)
-        interpolation.assemble()  # the cycle's from here on: destroyed with it
-        solver = TwoLevelSolver(A, indices[:owned_count], settings, stats, start, coarse, interpolation)
-    solutions = []
+    """HigherDegreeModel.solutions with nothing made ahead."""
+    model = HigherDegreeModel(scene, fields[0].function_space, (), E, nu, coarse is not None)
     try:
-        for u in fields:
-            held.interpolate(u)
-            start.seed(held.x.petsc_vec.array[:, None])
-            b = _lifted_load(form, bc, V)
-            solution = fem.Function(V)
-            try:
-                solver.solve(b, solution.x.petsc_vec)
-            finally:
-                b.destroy()
-            solution.x.scatter_forward()
-            solutions.append(solution)
+        return model.solutions(E, nu, fields, coarse, stats)
     finally:
-        solver.destroy()
-    log.debug(f"higher-degree solves: {stats.iterations} iterations of {solver.name}")
-    return solutions
+        model.destroy()
 
 
 def _lifted_load(form, bc, V) -> PETSc.Vec:
@@ -117,10 +212,12 @@ def _lifted_load(form, bc, V) -> PETSc.Vec:
     return b
 
 
-def mesh_shift(problem, lin: Linearisation, theta, evaluation) -> np.ndarray | None:
+def mesh_shift(problem, lin: Linearisation, theta, evaluation,
+               prepared: HigherDegreeModel | None = None) -> np.ndarray | None:
     """ds: how far s = (log E, nu) moves (first order, the controls following) when the
     model's observed displacements are those of the higher-degree solve at the answer;
-    None where the scene has no walls to hold or a point could not be probed."""
+    None where the scene has no walls to hold or a point could not be probed.
+    ``prepared``: HigherDegreeModel.ahead's, used up here (else made now)."""
     scene = problem.scene
     if not list(scene.config["boundary"]["loaded"]):
         return None
@@ -128,9 +225,14 @@ def mesh_shift(problem, lin: Linearisation, theta, evaluation) -> np.ndarray | N
     E, nu = problem.params.materials(theta)
     forward = problem.forward
     factors = forward.model.solvers.factors_near(forward.coefficients(theta)[0], forward.clamped_boundary)
-    solutions = higher_degree_solutions(scene, E, nu, evaluation.fields, factors)  # each state's
-    V = solutions[0].function_space
-    observe = problem.observation.on_space(V)
+    model = prepared or HigherDegreeModel(scene, forward.model.dofs.V, (), E, nu, factors is not None,
+                                          problem.observation)
+    try:
+        solutions = model.solutions(E, nu, evaluation.fields, factors)  # each state's
+    finally:
+        model.destroy()
+    V, observe = model.V, model.observe
+    assert observe is not None  # made with the problem's observation
     coarse = fem.Function(V)
     parts = []  # rows one state after another
     for u, finer in zip(evaluation.fields, solutions):

@@ -13,35 +13,29 @@ from __future__ import annotations
 
 import numpy as np
 
-from fenics_elasto.inverse.uncertainty.mesh_error import mesh_shift
+from fenics_elasto.inverse.uncertainty.mesh_error import HigherDegreeModel, mesh_error_wanted, mesh_shift
 from fenics_elasto.inverse.uncertainty.posterior import Posterior
 
 LEVERS = {"mesh": "a finer source mesh at the organs (about 4x smaller per halving of the element size, P2)",
           "bases": "bases with more examples and a higher rank (train --synthetic N --rank R)"}
 
 
-def add_model_error(problem, post: Posterior, theta, evaluation, lin, fit: dict | None) -> None:
+def add_model_error(problem, post: Posterior, theta, evaluation, lin, fit: dict | None,
+                    prepared: HigherDegreeModel | None = None) -> None:
     """Sets ``post.model_parts_s``: the mesh's and the bases' first-order shifts of the
     answer, as stds. Neither is applied as a correction: on the pelvis phantom's
     straight-sided gmsh source (curved on load, rippled wall motion) the degree-3 shift
     was -3 % where the answer was 4 % low already -- the geometry's error and the wall
-    motion's, which a higher degree on the same cells cannot see, were larger."""
+    motion's, which a higher degree on the same cells cannot see, were larger.
+    ``prepared``: the degree-3 solve's set-up made ahead (HigherDegreeModel.ahead), used up here."""
     parts = {"mesh": np.zeros(len(post.labels)), "bases": np.zeros(len(post.labels))}
     if fit and "shift_if_enriched_s" in fit:
         parts["bases"] = np.abs(np.asarray(fit["shift_if_enriched_s"], float))
-    ds = mesh_shift(problem, lin, theta, evaluation) if mesh_error_wanted(problem.scene) else None
+    ds = mesh_shift(problem, lin, theta, evaluation, prepared) if mesh_error_wanted(problem.scene) else None
     if ds is not None:
         parts["mesh"] = np.where(np.isfinite(ds), np.abs(ds), 0.0)
         post.mesh_shift_s = np.asarray(ds, float)
     post.model_parts_s = parts
-
-
-def mesh_error_wanted(scene) -> bool:
-    """``[uncertainty] mesh``: "on", "off", or "auto" -- in 3D only, where a P2 source of
-    curved organs put E 2-3 % off (2D estimates on data made elsewhere were within 0.6 %
-    without it, the letter's nu within 0.3 %)."""
-    mode = (scene.config.get("uncertainty") or {}).get("mesh", "auto")
-    return mode == "on" or (mode == "auto" and scene.gdim == 3)
 
 
 def largest_part(post: Posterior) -> list[str]:

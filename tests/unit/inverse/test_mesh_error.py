@@ -7,7 +7,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from fenics_elasto.inverse.uncertainty.mesh_error import higher_degree_solutions
+from fenics_elasto.inverse.uncertainty.mesh_error import HigherDegreeModel, higher_degree_solutions
 from fenics_elasto.inverse.uncertainty.parts import LEVERS, largest_part
 from fenics_elasto.mesh.builtin import build_scene
 from fenics_elasto.model.forward import BoundaryForward
@@ -75,6 +75,26 @@ def test_two_level_cycle_gives_amgs_solution_in_fewer_iterations(letter):
     difference = np.abs(solutions["amg"].x.array - solutions["two-level"].x.array).max()
     assert difference < 1e-5 * np.abs(solutions["amg"].x.array).max()
     assert 0 < iterations["two-level"] < iterations["amg"]
+
+
+def test_the_set_up_made_ahead_gives_the_solution_made_at_once(tmp_path):
+    """The inclusion's matrix region assembled into K_h first, at its known values, and the
+    inclusion added at the answer (HigherDegreeModel, as an estimate makes it while the
+    factorization runs): the solution of all regions assembled at once, through the
+    two-level cycle and, with no factors near the answer, through AMG. The inclusion's
+    values given first are wrong on purpose: only the known region's may be used."""
+    scene = load_scene(build_scene("inclusion", tmp_path, size=0.8))
+    u = simulate(scene).u
+    E, nu = [10.0, 42.0], [0.3, 0.35]
+    forward = BoundaryForward(scene)
+    factors = forward.model.factorize(forward.model.stiffness.coefficients(E, nu), forward.clamped_boundary)
+    for coarse in (factors, None):
+        (at_once,) = higher_degree_solutions(scene, E, nu, [u], coarse)
+        model = HigherDegreeModel(scene, u.function_space, [0], [10.0, 1.0], [0.3, 0.1], blocked=True)
+        (ahead,) = model.solutions(E, nu, [u], coarse)
+        model.destroy()
+        scale = np.abs(at_once.x.array).max()
+        assert np.abs(ahead.x.array - at_once.x.array).max() < 1e-12 * scale, coarse
 
 
 def test_the_largest_part_names_its_lever():
