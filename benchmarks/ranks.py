@@ -52,6 +52,7 @@ def result(folder: Path) -> dict:
 
 
 def main(out: Path, ranks: list[int], profiled: list[int]) -> None:
+    out = out.resolve()  # the problem's file names are read relative to its own folder
     source = out / "phantom"
     if not (source / "problem.toml").exists():
         cli("mesh", "prostate-phantom", "--out", source)
