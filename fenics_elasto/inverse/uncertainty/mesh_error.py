@@ -63,9 +63,10 @@ HIGHER_ROW_ENTRIES = {2: 60, 3: 150}
 def mesh_error_wanted(scene) -> bool:
     """``[uncertainty] mesh``: "on", "off", or "auto" -- in 3D only, where a P2 source of
     curved organs put E 2-3 % off (2D estimates on data made elsewhere were within 0.6 %
-    without it, the letter's nu within 0.3 %)."""
+    without it, the letter's nu within 0.3 %); never without loaded walls to hold."""
     mode = (scene.config.get("uncertainty") or {}).get("mesh", "auto")
-    return mode == "on" or (mode == "auto" and scene.gdim == 3)
+    wanted = mode == "on" or (mode == "auto" and scene.gdim == 3)
+    return wanted and bool(list(scene.config["boundary"]["loaded"]))
 
 
 def higher_space(fields_space: fem.FunctionSpace) -> fem.FunctionSpace:
@@ -117,7 +118,7 @@ class HigherDegreeModel:
         None where the estimate will want no degree-3 solve or its matrix would take over
         AHEAD_MEMORY_SHARE of the memory free now (it is then made at the answer)."""
         scene = problem.scene
-        if not (mesh_error_wanted(scene) and list(scene.config["boundary"]["loaded"])):
+        if not mesh_error_wanted(scene):
             return None
         space = problem.forward.model.dofs.V
         V = higher_space(space)
@@ -213,14 +214,12 @@ def _lifted_load(form, bc, V) -> PETSc.Vec:
 
 
 def mesh_shift(problem, lin: Linearisation, theta, evaluation,
-               prepared: HigherDegreeModel | None = None) -> np.ndarray | None:
+               prepared: HigherDegreeModel | None = None) -> np.ndarray:
     """ds: how far s = (log E, nu) moves (first order, the controls following) when the
-    model's observed displacements are those of the higher-degree solve at the answer;
-    None where the scene has no walls to hold or a point could not be probed.
-    ``prepared``: HigherDegreeModel.ahead's, used up here (else made now)."""
+    model's observed displacements are those of the higher-degree solve at the answer
+    (for a scene mesh_error_wanted says wants it). ``prepared``: HigherDegreeModel.ahead's,
+    used up here (else made now)."""
     scene = problem.scene
-    if not list(scene.config["boundary"]["loaded"]):
-        return None
     start = time.perf_counter()
     E, nu = problem.params.materials(theta)
     forward = problem.forward
