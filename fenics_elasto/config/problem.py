@@ -12,7 +12,7 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 
 from fenics_elasto.config.schema import (REQUIRED, ArrayOf, Boolean, Choice, Elastic, Integer, Key, LabelTargets, Matrix,
-                                         Named, Names, Number, String, Table, Vector, Where, show)
+                                         Named, Names, Number, NumberOr, String, Table, Vector, Where, show)
 from fenics_elasto.config.toml import apply_overrides, read_toml
 
 COMMANDS = ("simulate", "estimate", "train")
@@ -154,7 +154,8 @@ PROBLEM = Table({
         "method": Key(Choice("auto", "direct", "iterative"), "auto"),
         "rtol": Key(Number(gt=0, lt=1), 1e-8),  # every solve: ||b - K x|| <= rtol ||b||
         "factor": Key(Choice("lu", "cholesky"), "lu"),  # direct only
-        "blr": Key(Number(ge=0, le=1e-2, noun="a block low-rank tolerance (0: off)"), 0.0),  # direct only
+        # direct only: "auto" compresses where a factorization serves few solves (model/solvers.py)
+        "blr": Key(NumberOr("auto", ge=0, le=1e-2, noun="a block low-rank tolerance (0: off)"), "auto"),
     }), {}),
 }, exclusive=[("target", "states")], after=lambda c, where: {
     **c, "states": None if c["states"] is None else _check_states(c["states"], where.at("states"))})

@@ -152,6 +152,20 @@ class Number(Node):
         return float(value)
 
 
+class NumberOr(Number):
+    """A number within a range, or one of a few words standing for a rule ("auto")."""
+
+    def __init__(self, *words: str, **bounds):
+        super().__init__(**bounds)
+        self.words = words
+        self.expected = " or ".join([show(w) for w in words] + [self.expected])
+
+    def check(self, value, where):
+        if isinstance(value, str) and value in self.words:
+            return value
+        return super().check(value, where)
+
+
 class Integer(Number):
     noun = "an integer"
 

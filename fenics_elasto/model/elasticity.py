@@ -55,7 +55,7 @@ class ElasticModel:
         dofs = self.dofs
         modes = lambda: rigid_body_modes(dofs.dof_coords[: dofs.n_owned_blocks], dofs.comm)  # noqa: E731
         return SolverCache(self.settings, self.stats, self.stiffness.constrained, modes, self._cache_size,
-                           self.stiffness.at_once)
+                           self.stiffness.at_once, few_solves=isinstance(self.stiffness, FixedStiffness))
 
     def factorize(self, c, clamped: np.ndarray) -> LinearSolver:
         """A ready solver of K(c) with the clamped DOFs eliminated (a MUMPS factorization,

@@ -8,9 +8,12 @@ Every K here is sum_j c_j M_j with identity rows and columns on the clamped DOFs
   its matrix; new material values refill the matrix in place (same nonzero pattern),
   so PETSc refactors numerically only and MUMPS's ordering and symbolic analysis are
   paid once per object (measured: ~6 % of a factorization here; the numeric phase is
-  the cost). Optional block low-rank compression (``blr``: MUMPS ICNTL(35), dropping
+  the cost). Block low-rank compression (``blr``: MUMPS ICNTL(35), dropping
   tolerance CNTL(7)) makes factors smaller (116k DOFs: -13 % entries at 1e-8, -49 % at
-  1e-4) but approximate; every solution is therefore refined against the true K
+  1e-4) and quicker to make, but approximate. By default ("auto") it is on from
+  AUTO_BLR_DOFS up where a factorization serves few solves (a simulation, training's
+  material levels) and off where it serves many (an estimate's). Every solution is
+  refined against the true K
   (x += F^-1 (b - K x) while that halves the residual, then GMRES preconditioned by
   the same factors) until ||b - K x|| <= rtol ||b||, so the answer is exact to rtol
   with or without compression. The residual check costs one product with K and also
@@ -89,6 +92,16 @@ MEMORY_SHARE = 0.8  # ... and refuse factors estimated above this share of the a
 REFINEMENTS = 10  # direct: at most this many refinement steps per solve
 MAX_ITERATIONS = 2000  # iterative: CG iterations per right-hand side
 NEARBY_RATIO = 4.0  # NearbySolver: largest spread of c / c0 (CG ~ sqrt(ratio) log(2 / rtol) iterations)
+# blr = "auto": MUMPS's block low-rank factors at this dropping tolerance, from this size up,
+# where a factorization serves few solves (a simulation, training's material levels). On
+# the default phantom (116k DOFs) a simulate took 12.8 s against 19.7 s and a `train
+# --synthetic 120 --rank 80` 46 s against 57-59 s; 1e-4 factorizes faster still but its
+# solutions need so many refinement steps that training took 72 s; at 32k DOFs the fronts
+# are too small to compress (2.5-2.9 s against 2.0 s). A reduced estimate keeps exact
+# factors: its one factorization serves hundreds of block solves and preconditions its
+# refinement, and with 1e-5 it took 53 s against 47-49 s (docs/performance.md).
+AUTO_BLR = 1e-5
+AUTO_BLR_DOFS = 100_000
 RHS_BLOCK_BYTES = 256 * 2**20  # direct: MUMPS solves a block of right-hand sides this much at a time
 WARM_COLUMNS = (8, 64)  # WarmStart keeps at least 8 recent solutions, at most 64
 
@@ -117,7 +130,7 @@ class SolverSettings:
     method: str = "auto"  # "direct" | "iterative" | "auto"
     rtol: float = 1e-8  # every solve: ||b - K x|| <= rtol ||b||
     factor: str = "lu"  # direct: "lu" | "cholesky"
-    blr: float = 0.0  # direct: MUMPS block low-rank tolerance, 0 = off
+    blr: float | str = "auto"  # direct: MUMPS block low-rank tolerance, 0 = off, "auto": AUTO_BLR's rule
 
     @classmethod
     def from_config(cls, table: dict | None) -> SolverSettings:
@@ -128,6 +141,13 @@ class SolverSettings:
         if self.method != "auto":
             return self.method
         return "direct" if dofs <= DIRECT_LIMIT else "iterative"
+
+    def blr_for(self, dofs: int, few_solves: bool) -> float:
+        """The block low-rank tolerance of a factorization of K with ``dofs`` DOFs that
+        serves few solves or many (0: exact factors)."""
+        if self.blr != "auto":
+            return float(self.blr)
+        return AUTO_BLR if few_solves and dofs >= AUTO_BLR_DOFS else 0.0
 
 
 @dataclass
@@ -227,12 +247,8 @@ def mumps_analysis(K: PETSc.Mat, factor: str = "lu", set_up: Callable = PETSc.KS
     over all ranks, INFOG(17); flops, RINFOG(1); and INFOG(1) itself. ``set_up``: how
     the KSP is set up (``_SetUpAside`` does it without the GIL)."""
     ksp = _new_ksp(K)
-    ksp.setType("preonly")
-    pc = ksp.getPC()
-    pc.setType(factor)
-    pc.setFactorSolverType("mumps")
-    pc.setFactorSetUpSolverType()
-    F = pc.getFactorMatrix()
+    _use_mumps(ksp, factor, 0.0, K.getSize()[0])  # the exact factors' memory: an upper bound with compression
+    F = ksp.getPC().getFactorMatrix()
     F.setMumpsIcntl(23, 1)
     set_up(ksp)
     out = {"busiest MB": F.getMumpsInfog(16), "total MB": F.getMumpsInfog(17), "flops": F.getMumpsRinfog(1),
@@ -312,32 +328,37 @@ class LinearSolver:
         self.K.destroy()
 
 
-def _use_mumps(ksp: PETSc.KSP, settings: SolverSettings, dofs: int) -> None:
-    """The KSP a direct solve of its operator by MUMPS, with the settings' factor and
-    block low-rank tolerance; a user's -elasto_mat_mumps_icntl_27 still wins."""
+def _use_mumps(ksp: PETSc.KSP, factor: str, blr: float, dofs: int) -> None:
+    """The KSP a direct solve of its operator by MUMPS, with this factor ("lu" or
+    "cholesky") and block low-rank tolerance (0: off); a user's
+    -elasto_mat_mumps_icntl_27 still wins."""
     ksp.setType("preonly")
     pc = ksp.getPC()
-    pc.setType(settings.factor)
+    pc.setType(factor)
     pc.setFactorSolverType("mumps")
-    if settings.factor == "cholesky":
+    if factor == "cholesky":
         ksp.getOperators()[0].setOption(PETSc.Mat.Option.SPD, True)
     ksp.setFromOptions()
     pc.setFactorSetUpSolverType()
     F = pc.getFactorMatrix()
     F.setMumpsIcntl(27, -rhs_blocking(dofs))
-    if settings.blr > 0:
+    if blr > 0:
         F.setMumpsIcntl(35, 2)  # block low-rank in factorization and solve
-        F.setMumpsCntl(7, settings.blr)  # dropping tolerance of the low-rank blocks
+        F.setMumpsCntl(7, blr)  # dropping tolerance of the low-rank blocks
 
 
 class DirectSolver(LinearSolver):
     """MUMPS LU or Cholesky; analysis kept across refreshes; solutions refined to rtol.
     Above MEMORY_CHECK_DOFS the factors must fit the memory available first
-    (``factor_need``: their size from an earlier analysis of this pattern, if known)."""
+    (``factor_need``: their size from an earlier analysis of this pattern, if known).
+    ``few_solves``: the factors serve few solves, so [solver] blr = "auto" may compress
+    them (SolverSettings.blr_for)."""
 
-    def __init__(self, K, clamped, settings, stats, factor_need: float | None = None, ahead: bool = False):
+    def __init__(self, K, clamped, settings, stats, factor_need: float | None = None, ahead: bool = False,
+                 few_solves: bool = False):
         super().__init__(K, clamped, settings, stats)
-        _use_mumps(self.ksp, settings, self.dofs)
+        self.blr = settings.blr_for(self.dofs, few_solves)
+        _use_mumps(self.ksp, settings.factor, self.blr, self.dofs)
         self._analysed = False
         self._pending: _SetUpAside | None = None  # the memory check and factorization under way (``ahead``)
         self.factor_need = factor_need
@@ -434,7 +455,7 @@ class DirectSolver(LinearSolver):
         R.destroy()
         if open_.any():
             relative = float(np.max(r / np.maximum(scale / self.settings.rtol, 1e-300)))
-            if self.settings.blr == 0:
+            if self.blr == 0:
                 raise self._stalled(relative)
             self._gmres(B, X, np.flatnonzero(open_))
         check_finite(X, "the direct solution", self.comm)
@@ -748,8 +769,9 @@ class SolverCache:
     """
 
     def __init__(self, settings: SolverSettings, stats: SolverStats, stiffness: Callable,
-                 near_nullspace: Callable, size: int = 2, at_once: Callable | None = None):
+                 near_nullspace: Callable, size: int = 2, at_once: Callable | None = None, few_solves: bool = False):
         self.settings, self.stats, self.size = settings, stats, size
+        self.few_solves = few_solves  # each factorization serves few solves (DirectSolver)
         self.stiffness = stiffness  # (c, clamped, out=None) -> K with identity rows on clamped
         self.at_once = at_once or stiffness  # (c, clamped) -> the same K, the quickest way from nothing (``ahead``)
         self.near_nullspace = near_nullspace  # () -> PETSc.NullSpace, built on first need
@@ -825,7 +847,8 @@ class SolverCache:
 
     def _new(self, K: PETSc.Mat, clamped: np.ndarray, ahead: bool = False) -> LinearSolver:
         if self.stats.method == "direct":
-            solver = DirectSolver(K, clamped, self.settings, self.stats, self._known_need(clamped), ahead)
+            solver = DirectSolver(K, clamped, self.settings, self.stats, self._known_need(clamped), ahead,
+                                  self.few_solves)
             self._factor_need[clamped.tobytes()] = solver.factor_need  # None while an ``ahead`` check runs
             return solver
         if self._modes is None:
@@ -846,12 +869,13 @@ class SolverCache:
         """Material values solved one after another, never again (training's levels): each
         refills the previous one's solver instead of building a second. On the default
         phantom (116k DOFs) a refill took 16-17 s and a second solver's first
-        factorization 27-28 s (MUMPS allocating its factors anew)."""
-        size, self.size = self.size, 1
+        factorization 27-28 s (MUMPS allocating its factors anew). A solver made here
+        serves few solves (``few_solves``)."""
+        size, few, self.size, self.few_solves = self.size, self.few_solves, 1, True
         try:
             yield
         finally:
-            self.size = size
+            self.size, self.few_solves = size, few
 
     def __iter__(self):
         return iter(self._solvers.values())

@@ -204,6 +204,8 @@ BAD_PROBLEMS = {
     "solver rtol 0": ({"solver": {"rtol": 0}}, (), "estimate", "problem.toml: solver.rtol:", ["in (0, 1), got 0"]),
     "solver factor": ({"solver": {"factor": "ldl"}}, (), "estimate", "problem.toml: solver.factor:", ['"cholesky"', 'got "ldl"']),
     "solver blr": ({"solver": {"blr": 0.1}}, (), "estimate", "problem.toml: solver.blr:", ["block low-rank", "got 0.1"]),
+    "solver blr a word": ({"solver": {"blr": "fast"}}, (), "estimate", "problem.toml: solver.blr:",
+                          ['"auto" or a block low-rank tolerance', 'got "fast"']),
     "solver typo": ({"solvr": {}}, (), "estimate", "problem.toml: [solvr]:", ["did you mean [solver]?"]),
     "one line for a key with a newline": ({"materials": {"letter": {"n\nu": 0.3}}}, (), "estimate",
                                           'problem.toml: materials.letter."n\\nu":', ["unknown key"]),
@@ -259,7 +261,7 @@ def test_defaults_filled():
                       "allow_undetermined": False},
         "uncertainty": {"mesh": "auto"},
         "reduction": None,
-        "solver": {"method": "auto", "rtol": 1e-8, "factor": "lu", "blr": 0.0},
+        "solver": {"method": "auto", "rtol": 1e-8, "factor": "lu", "blr": "auto"},
     }
     assert isinstance(config["materials"]["a"]["E"]["value"], float)
 

@@ -15,8 +15,9 @@ from fenics_elasto.model.loads import boundary_load
 from fenics_elasto.model.forward import BoundaryForward
 from fenics_elasto.model.scene import load_scene
 from fenics_elasto.model.simulate import material_values, simulate
-from fenics_elasto.model.solvers import (DIRECT_LIMIT, DirectSolver, SolverError, SolverSettings, SolverStats,
-                                         rhs_blocking)
+from fenics_elasto.model import solvers
+from fenics_elasto.model.solvers import (AUTO_BLR, AUTO_BLR_DOFS, DIRECT_LIMIT, DirectSolver, SolverError,
+                                         SolverSettings, SolverStats, rhs_blocking)
 from fenics_elasto.model.responses import response_block
 
 MPI_SCRIPT = TESTS / "mpi" / "solvers.py"
@@ -186,6 +187,31 @@ def test_warm_start_saves_iterations(phantom_p1):
     fresh = ElasticModel(phantom_p1, SolverSettings(method="iterative"))
     assert relative(u, fresh.solve(fresh.stiffness.coefficients(stiffer, nu), clamped, load).x.array) < 1e-6
     assert fresh.stats.iterations >= cold - 1  # the same kind of system from scratch
+
+
+def test_auto_blr_compresses_only_factors_that_serve_few_solves(cantilever, monkeypatch):
+    """blr = "auto" (the default): block low-rank factors from AUTO_BLR_DOFS up where a
+    factorization serves few solves -- a simulation's model, training's material levels --
+    and exact factors for the rest (an estimate's, which serve hundreds of solves)."""
+    auto = SolverSettings(method="direct")
+    assert auto.blr_for(AUTO_BLR_DOFS, few_solves=True) == AUTO_BLR
+    assert auto.blr_for(AUTO_BLR_DOFS - 1, few_solves=True) == 0.0
+    assert auto.blr_for(10 * AUTO_BLR_DOFS, few_solves=False) == 0.0
+    assert SolverSettings(blr=0.0).blr_for(10 * AUTO_BLR_DOFS, few_solves=True) == 0.0
+    assert SolverSettings(blr=1e-8).blr_for(10, few_solves=False) == 1e-8
+    monkeypatch.setattr(solvers, "AUTO_BLR_DOFS", 0)  # the cantilever's few DOFs: the rule, not the gain
+    E, nu = material_values(cantilever)
+
+    def compression(model: ElasticModel) -> float:
+        clamped = model.dofs.clamped_dofs(cantilever.fixed)
+        F = model.factorize(model.stiffness.coefficients(E, nu), clamped).factor
+        return F.getMumpsCntl(7) if F.getMumpsIcntl(35) else 0.0
+
+    assert compression(ElasticModel(cantilever, auto, fixed=(E, nu))) == AUTO_BLR  # a simulation
+    assert compression(ElasticModel(cantilever, auto)) == 0.0  # an estimate
+    training = ElasticModel(cantilever, auto)
+    with training.solvers.one_at_a_time():
+        assert compression(training) == AUTO_BLR
 
 
 def test_auto_switches_by_size():
