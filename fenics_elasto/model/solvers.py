@@ -160,6 +160,7 @@ class SolverStats:
     setups: int = 0  # AMG hierarchies built or refreshed (iterative)
     solves: int = 0  # right-hand sides solved
     iterations: int = 0  # CG iterations (iterative); refinement + GMRES steps (direct)
+    blr: float = 0.0  # direct: the latest factors' block low-rank tolerance (0: exact)
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -357,7 +358,7 @@ class DirectSolver(LinearSolver):
     def __init__(self, K, clamped, settings, stats, factor_need: float | None = None, ahead: bool = False,
                  few_solves: bool = False):
         super().__init__(K, clamped, settings, stats)
-        self.blr = settings.blr_for(self.dofs, few_solves)
+        self.blr = stats.blr = settings.blr_for(self.dofs, few_solves)
         _use_mumps(self.ksp, settings.factor, self.blr, self.dofs)
         self._analysed = False
         self._pending: _SetUpAside | None = None  # the memory check and factorization under way (``ahead``)
