@@ -324,6 +324,20 @@ class LinearSolver:
         """A dense block of right-hand sides (owned rows, k columns) at once."""
         raise NotImplementedError
 
+    @contextmanager
+    def loosened(self, rtol: float) -> Iterator[LinearSolver]:
+        """This solver with its solves in the ``with`` block to ``rtol`` where that is
+        looser than the settings' (refinement steps or CG iterations saved where the
+        caller needs fewer digits)."""
+        settings = self.settings
+        self.settings = replace(settings, rtol=max(rtol, settings.rtol))
+        self.ksp.setTolerances(rtol=self.settings.rtol)  # CG's; a direct KSP (preonly) ignores it
+        try:
+            yield self
+        finally:
+            self.settings = settings
+            self.ksp.setTolerances(rtol=settings.rtol)
+
     def destroy(self) -> None:
         self.ksp.destroy()
         self.K.destroy()

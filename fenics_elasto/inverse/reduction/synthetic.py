@@ -41,6 +41,12 @@ from fenics_elasto.util.errors import require
 from fenics_elasto.geometry.fields import SmoothFields
 from fenics_elasto.util.logs import log
 
+# The solved examples' relative residual: each is one of many wall motions whose leading
+# directions become the bases, and what rank 80 leaves of 120 examples' energy (0.03 %
+# on the default phantom) is far above 1e-6. Against the estimate's 1e-8 it saves two
+# refinement steps per block on compressed factors, about 2 CG iterations per column
+# per decade with the iterative method.
+EXAMPLE_RTOL = 1e-6
 
 
 @dataclass
@@ -196,7 +202,8 @@ def pressure_examples(problem, count: int, length: float, rng, levels: int) -> n
         B, X = model.dofs.dense(len(chosen)), model.dofs.dense(len(chosen))
         B.getDenseArray()[:] = rhs[:, chosen]
         with model.solvers.one_at_a_time():
-            model.factorize(forward.coefficients(theta)[0], forward.clamped).solve_many(B, X)
+            with model.factorize(forward.coefficients(theta)[0], forward.clamped).loosened(EXAMPLE_RTOL) as solver:
+                solver.solve_many(B, X)
         rows = forward.loaded.dofs(model.dofs.bs).ravel()
         fields = X.getDenseArray()[rows].reshape(len(forward.loaded), forward.gdim * len(chosen))
         out[:, chosen] = forward.loaded.gather(fields).reshape(-1, len(chosen))

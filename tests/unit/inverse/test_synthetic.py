@@ -19,6 +19,7 @@ from fenics_elasto.inverse.report import (RANK_REACH, RANK_SIGMAS, _bias_warning
 from fenics_elasto.inverse.options import Options
 from fenics_elasto.inverse.reduction.bases import Bases, missing_wall_motion, reach_warning, train_bases
 from fenics_elasto.model.scene import load_scene
+from fenics_elasto.inverse.reduction import synthetic
 from fenics_elasto.inverse.reduction.synthetic import Generator, affine_basis, pressure_examples
 from targets import inclusion_ratio_4_target
 
@@ -77,7 +78,7 @@ def test_an_estimate_with_narrow_bases_warns_and_records_their_reach(tmp_path, i
     assert sum(f"keep only {100 * narrow.held_out:.0f} %" in w for w in result["warnings"]) == 1, result["warnings"]
 
 
-def test_pressure_examples_are_forward_solves_at_the_drawn_materials(inclusion):
+def test_pressure_examples_are_forward_solves_at_the_drawn_materials(inclusion, monkeypatch):
     """Each example is the wall motion of K(theta) u = f with f a wall load, solved in
     blocks: one factorization per material level."""
     _, problem = inclusion
@@ -87,6 +88,9 @@ def test_pressure_examples_are_forward_solves_at_the_drawn_materials(inclusion):
     assert columns.shape == (problem.force_dofs, 4)
     assert np.all(np.linalg.norm(columns, axis=0) > 0) and np.isfinite(columns).all()
     assert problem.model.factorizations - before == 2  # one per material level, examples solved as blocks
+    monkeypatch.setattr(synthetic, "EXAMPLE_RTOL", 1e-12)  # every example to the last digits instead
+    tight = pressure_examples(problem, 4, 2.0, np.random.default_rng(3), levels=2)
+    assert np.linalg.norm(columns - tight) <= 1e-5 * np.linalg.norm(tight)
 
 
 def test_a_constant_mimicked_here_but_seen_by_the_scan_runs_with_a_warning(tmp_path, inclusion, monkeypatch):

@@ -168,6 +168,14 @@ def test_blr_is_refined_to_the_tolerance(scenes):
     assert solver.factor.getMumpsInfog(35) < solver.factor.getMumpsInfog(29)  # it did compress
     assert compressed.stats.iterations >= 1  # the compressed factor alone is not enough...
     assert relative(u_blr, u) < 1e-8  # ...the refined answer is
+    # loosened (as training's examples are): fewer refinement steps, the residual within the looser rtol
+    tight = compressed.stats.iterations
+    with solver.loosened(1e-4) as loose:
+        assert loose.settings.rtol == 1e-4
+        u_loose = _solve_at(compressed, scene, E, rhs)  # the same factors, the same load
+    assert compressed.stats.iterations - tight < tight
+    assert solver.settings.rtol == 1e-10  # restored after the block
+    assert 1e-10 < relative(u_loose, u) < 1e-2  # the field to within ~10x its residual (1.0e-3 here)
 
 
 def test_warm_start_saves_iterations(phantom_p1):
