@@ -44,8 +44,8 @@ from fenics_elasto.util.logs import log
 # The solved examples' relative residual: each is one of many wall motions whose leading
 # directions become the bases, and what rank 80 leaves of 120 examples' energy (0.03 %
 # on the default phantom) is far above 1e-6. Against the estimate's 1e-8 it saves two
-# refinement steps per block on compressed factors, about 2 CG iterations per column
-# per decade with the iterative method.
+# refinement steps per block on compressed factors, and ~3 CG iterations per column per
+# decade with the iterative method (benchmarks/solvers.py).
 EXAMPLE_RTOL = 1e-6
 
 
