@@ -179,50 +179,64 @@ def material_levels(problem, count: int, rng) -> list[np.ndarray]:
 
 def pressure_examples(problem, count: int, length: float, rng, levels: int) -> np.ndarray:
     """(force_dofs, count): walls moved by random smooth pressure and traction fields,
-    solved through the forward model at a few material values (one factorization each)."""
+    solved through the forward model at a few material values (one factorization each).
+    Every random draw comes first, in the order the examples were always drawn in, so
+    that the first level's factorization runs beside the fields' evaluation and the
+    loads' assembly (serial: solvers.SolverCache.ahead)."""
     forward, model = problem.forward, problem.model
     loads = WallLoads(forward)
     q_groups = _group_of(problem, loads.q_points)
     v_groups = _group_of(problem, loads.v_points)
-    pressure = wall_fields(loads.q_points, q_groups, count, length, rng)[..., 0]
-    traction = 0.3 * wall_fields(loads.v_points, v_groups, count, length, rng, components=forward.gdim)
-    for g in np.unique(q_groups[q_groups >= 0]):  # each wall its own sign and size: one fills, one empties
-        size = rng.normal(0.0, 1.0, count)[:, None]
-        pressure[:, q_groups == g] += size
-        traction[:, v_groups == g] *= np.abs(size)[..., None]
-    P = loads.block(loads.pressure, pressure.T, model)
-    T = loads.block(loads.traction, traction.reshape(count, -1).T, model)
-    P.axpy(1.0, T)
-    rhs = P.getDenseArray()
-    rhs[forward.clamped] = 0.0
+    pressure = SmoothFields(count, 1, forward.gdim, length, rng)
+    traction = SmoothFields(count, forward.gdim, forward.gdim, length, rng)
+    walls = np.unique(q_groups[q_groups >= 0])  # each wall its own sign and size: one fills, one empties
+    sizes = [rng.normal(0.0, 1.0, count)[:, None] for _ in walls]
+    thetas = material_levels(problem, min(levels, count), rng)
     out = np.zeros((forward.force_dofs, count))
-    level_of = np.arange(count) % min(levels, count)
-    for level, theta in enumerate(material_levels(problem, min(levels, count), rng)):
-        chosen = np.flatnonzero(level_of == level)
-        B, X = model.dofs.dense(len(chosen)), model.dofs.dense(len(chosen))
-        B.getDenseArray()[:] = rhs[:, chosen]
-        with model.solvers.one_at_a_time():
-            with model.factorize(forward.coefficients(theta)[0], forward.clamped).loosened(EXAMPLE_RTOL) as solver:
-                solver.solve_many(B, X)
-        rows = forward.loaded.dofs(model.dofs.bs).ravel()
-        fields = X.getDenseArray()[rows].reshape(len(forward.loaded), forward.gdim * len(chosen))
-        out[:, chosen] = forward.loaded.gather(fields).reshape(-1, len(chosen))
-        for M in (B, X):
+    with model.solvers.one_at_a_time():
+        model.factorize_ahead(forward.coefficients(thetas[0])[0], forward.clamped)
+        p = wall_fields(loads.q_points, q_groups, pressure)[..., 0]
+        t = 0.3 * wall_fields(loads.v_points, v_groups, traction)
+        for g, size in zip(walls, sizes):
+            p[:, q_groups == g] += size
+            t[:, v_groups == g] *= np.abs(size)[..., None]
+        P = loads.block(loads.pressure, p.T, model)
+        T = loads.block(loads.traction, t.reshape(count, -1).T, model)
+        P.axpy(1.0, T)
+        rhs = P.getDenseArray()
+        rhs[forward.clamped] = 0.0
+        level_of = np.arange(count) % len(thetas)
+        for level, theta in enumerate(thetas):
+            chosen = np.flatnonzero(level_of == level)
+            out[:, chosen] = _solved_walls(problem, theta, rhs[:, chosen])
+            log.info(f"  {len(chosen)} pressure/traction examples at {problem.params.describe(theta)}")
+        for M in (P, T):
             M.destroy()
-        log.info(f"  {len(chosen)} pressure/traction examples at {problem.params.describe(theta)}")
-    for M in (P, T):
-        M.destroy()
     return out
 
 
-def wall_fields(points: np.ndarray, groups: np.ndarray, count: int, length: float, rng,
-                components: int = 1) -> np.ndarray:
-    """(count, n, components): smooth random fields at the nodes on a wall (``groups`` >=
-    0), 0 elsewhere -- the wall-load matrices see nothing else, and the fields are
-    evaluated only where they act (the default phantom: 12 % of the nodes)."""
+def _solved_walls(problem, theta, rhs: np.ndarray) -> np.ndarray:
+    """(force_dofs, k): the loaded walls' motion under the loads ``rhs`` (owned rows, k
+    columns) at the materials theta, to EXAMPLE_RTOL."""
+    forward, model = problem.forward, problem.model
+    B, X = model.dofs.dense(rhs.shape[1]), model.dofs.dense(rhs.shape[1])
+    B.getDenseArray()[:] = rhs
+    with model.factorize(forward.coefficients(theta)[0], forward.clamped).loosened(EXAMPLE_RTOL) as solver:
+        solver.solve_many(B, X)
+    rows = forward.loaded.dofs(model.dofs.bs).ravel()
+    fields = X.getDenseArray()[rows].reshape(len(forward.loaded), forward.gdim * rhs.shape[1])
+    for M in (B, X):
+        M.destroy()
+    return forward.loaded.gather(fields).reshape(-1, rhs.shape[1])
+
+
+def wall_fields(points: np.ndarray, groups: np.ndarray, fields: SmoothFields) -> np.ndarray:
+    """(count, n, components): the drawn smooth random ``fields`` at the nodes on a wall
+    (``groups`` >= 0), 0 elsewhere -- the wall-load matrices see nothing else, and the
+    fields are evaluated only where they act (the default phantom: 12 % of the nodes)."""
     on_wall = groups >= 0
-    out = np.zeros((count, len(points), components))
-    out[:, on_wall] = smooth_fields(points[on_wall], count, length, rng, components)
+    out = np.zeros((len(fields.weight), len(points), fields.weight.shape[1]))
+    out[:, on_wall] = fields(points[on_wall])
     return out
 
 
