@@ -96,12 +96,13 @@ NEARBY_RATIO = 4.0  # NearbySolver: largest spread of c / c0 (CG ~ sqrt(ratio) l
 # where a factorization serves few solves (a simulation, training's material levels). On
 # the default phantom (116k DOFs) a simulate took 12.8 s against 19.7 s and a `train
 # --synthetic 120 --rank 80` 46 s against 57-59 s; 1e-4 factorizes faster still but its
-# solutions need so many refinement steps that training took 72 s; at 32k DOFs the fronts
-# are too small to compress (2.5-2.9 s against 2.0 s). A reduced estimate keeps exact
+# solutions need so many refinement steps that training took 72 s. Smaller phantoms: at 61k
+# DOFs a simulate 0.82x and a training 0.88x, at 46k 0.88-0.94x, at 32k the fronts are
+# too small to compress (2.5-2.9 s against 2.0 s). A reduced estimate keeps exact
 # factors: its one factorization serves hundreds of block solves and preconditions its
 # refinement, and with 1e-5 it took 53 s against 47-49 s (docs/performance.md).
 AUTO_BLR = 1e-5
-AUTO_BLR_DOFS = 100_000
+AUTO_BLR_DOFS = 50_000
 RHS_BLOCK_BYTES = 256 * 2**20  # direct: MUMPS solves a block of right-hand sides this much at a time
 WARM_COLUMNS = (8, 64)  # WarmStart keeps at least 8 recent solutions, at most 64
 
