@@ -13,28 +13,18 @@ gives each pair's ratio.
 from __future__ import annotations
 
 import argparse
-import json
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import numpy as np
 
-BIN = Path(sys.executable).parent
+from ranks import cli, result  # the rank table's: one command in its own process, its result.json
+
 SETTINGS = {"exact": ["--set", "solver.blr=0"], "auto": []}
-
-
-def cli(*args) -> float:
-    """Run one command of the toolkit; its wall seconds."""
-    start = time.perf_counter()
-    subprocess.run([str(BIN / "fenics-elasto"), *map(str, args)], check=True, capture_output=True)
-    return time.perf_counter() - start
 
 
 def simulate_seconds(problem: Path, out: Path, setting: list[str]) -> float:
     cli("simulate", problem, "--out", out, *setting)
-    return json.loads((out / "result.json").read_text())["wall_time_s"]
+    return result(out)["wall_time_s"]
 
 
 def train_seconds(problem: Path, out: Path, setting: list[str]) -> float:

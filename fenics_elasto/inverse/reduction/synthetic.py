@@ -235,8 +235,9 @@ def wall_fields(points: np.ndarray, groups: np.ndarray, fields: SmoothFields) ->
     (``groups`` >= 0), 0 elsewhere -- the wall-load matrices see nothing else, and the
     fields are evaluated only where they act (the default phantom: 12 % of the nodes)."""
     on_wall = groups >= 0
-    out = np.zeros((len(fields.weight), len(points), fields.weight.shape[1]))
-    out[:, on_wall] = fields(points[on_wall])
+    values = fields(points[on_wall])
+    out = np.zeros((values.shape[0], len(points), values.shape[2]))
+    out[:, on_wall] = values
     return out
 
 
