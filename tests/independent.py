@@ -984,3 +984,160 @@ def plain_source(out, order: int, seed: int = 0, organs_size: float = 0.45, far:
         return {"problem": problem, "mesh": folder / "source.msh"}
 
     return cached(out, "plain-source", params, make)["problem"]
+
+
+# --------------------------------------------------------------------------- case 4: a kidney from label maps
+
+# A kidney-sized ellipsoid (semi-axes in mm, its own frame) holding a ball "tumour", its
+# hilum end clamped and one side pressed by a probe; imaged at rest and pressed as label
+# maps of anisotropic voxels in a rotated, shifted frame, as a CT's would be.
+KIDNEY_AXES = np.array([50.0, 28.0, 24.0])
+KIDNEY_TUMOUR = (np.array([8.0, 6.0, 0.0]), 11.0)  # centre, radius
+KIDNEY_HILUM, KIDNEY_PROBE = 0.8, 0.8  # the hilum: x < -0.8 a; the probe's face: y > 0.8 b
+KIDNEY_VOXELS = np.array([1.0, 1.0, 1.5])
+KIDNEY_OFFSET = np.array([-120.0, 40.0, -600.0])  # the world position of the kidney's centre
+
+
+def kidney_rotation() -> np.ndarray:
+    """The kidney's frame in the world: 25 degrees about a tilted axis."""
+    axis = np.array([2.0, -1.0, 2.0]) / 3.0
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    angle = np.radians(25.0)
+    return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
+
+
+def kidney_grid(margin: float = 12.0) -> tuple[tuple, np.ndarray, np.ndarray]:
+    """(shape, the voxel centres in the kidney's frame (n, 3), the image's affine): voxels
+    of KIDNEY_VOXELS covering the kidney and ``margin`` mm around it (room to deform)."""
+    corner = -(KIDNEY_AXES + margin)
+    shape = tuple(int(n) for n in np.ceil(2 * (KIDNEY_AXES + margin) / KIDNEY_VOXELS) + 1)
+    ijk = np.indices(shape).reshape(3, -1).T
+    affine = np.eye(4)
+    affine[:3, :3] = kidney_rotation() * KIDNEY_VOXELS
+    affine[:3, 3] = kidney_rotation() @ corner + KIDNEY_OFFSET
+    return shape, ijk * KIDNEY_VOXELS + corner, affine
+
+
+def kidney_probe_motion(push: float) -> Callable:
+    """The probe's face (y > 0.8 b) pressed in by ``push`` mm at its middle and less
+    towards its rim (a rounded probe), dragged along the kidney by a tenth of that and
+    rippled: motion no affine map has."""
+    a, _, c = KIDNEY_AXES
+
+    def motion(x):
+        reach = (x[0] / (0.6 * a)) ** 2 + (x[2] / (0.6 * c)) ** 2
+        depth = push * (1.0 - 0.4 * reach) + 0.05 * push * np.sin(x[0] / 6.0)
+        return np.array([0.1 * push * (1.0 - reach), -depth, 0.05 * push * np.cos(x[2] / 5.0)])
+
+    return motion
+
+
+def _kidney_geometry(gmsh) -> dict:
+    """The kidney, its tumour, and the hilum and probe cut from its surface by planes;
+    physical groups kidney, tumour (volumes), hilum, probe, outer, tumour_surface."""
+    occ = gmsh.model.occ
+    a, b, c = KIDNEY_AXES
+    body = _ellipsoid(occ, {"center": (0.0, 0.0, 0.0), "radii": KIDNEY_AXES})
+    centre, radius = KIDNEY_TUMOUR
+    ball = occ.addSphere(*centre, radius)
+    hilum = occ.addBox(-2 * a, -2 * b, -2 * c, (2 - KIDNEY_HILUM) * a, 4 * b, 4 * c)
+    probe = occ.addBox(-2 * a, KIDNEY_PROBE * b, -2 * c, 4 * a, 2 * b, 4 * c)
+    occ.fragment([(3, body)], [(3, ball), (3, hilum), (3, probe)])
+    occ.synchronize()
+    inside = lambda tag: ((np.array(occ.getCenterOfMass(3, tag)) / KIDNEY_AXES) ** 2).sum() < 1  # noqa: E731
+    outside = [(3, t) for _, t in gmsh.model.getEntities(3) if not inside(t)]
+    occ.remove(outside, recursive=True)
+    occ.synchronize()
+    volumes = [t for _, t in gmsh.model.getEntities(3)]
+    tumour = [t for t in volumes if np.linalg.norm(np.array(occ.getCenterOfMass(3, t)) - centre) < 1e-3]
+    kidney = [t for t in volumes if t not in tumour]
+    faces: dict = {"hilum": [], "probe": [], "outer": [],
+                   "tumour_surface": [t for _, t in gmsh.model.getBoundary([(3, tumour[0])], oriented=False)]}
+    for _, face in gmsh.model.getBoundary([(3, t) for t in volumes], combined=True, oriented=False):
+        x, y, _ = occ.getCenterOfMass(2, face)
+        faces["hilum" if x < -KIDNEY_HILUM * a else "probe" if y > KIDNEY_PROBE * b else "outer"].append(face)
+    gmsh.model.addPhysicalGroup(3, kidney, name="kidney")
+    gmsh.model.addPhysicalGroup(3, tumour, name="tumour")
+    for name, tags in faces.items():
+        gmsh.model.addPhysicalGroup(2, tags, name=name)
+    return faces
+
+
+def kidney_model(tumour_size: float, far: float) -> Elasticity:
+    """The kidney meshed P2, curved (gmsh's Delaunay surfaces and HXT volumes, unfolded),
+    element size ``tumour_size`` at the tumour and ``far`` elsewhere."""
+    with gmsh_model("kidney-truth") as gmsh:
+        faces = _kidney_geometry(gmsh)
+        field = gmsh.model.mesh.field
+        field.setAsBackgroundMesh(_graded(field, faces["tumour_surface"], tumour_size, far))
+        for option, value in (("MeshSizeExtendFromBoundary", 0), ("MeshSizeFromPoints", 0),
+                              ("MeshSizeFromCurvature", 0), ("Algorithm", 5), ("Algorithm3D", 10),
+                              ("ElementOrder", 2), ("HighOrderOptimize", 2)):
+            gmsh.option.setNumber(f"Mesh.{option}", value)
+        gmsh.option.setNumber("General.NumThreads", 1)
+        gmsh.model.mesh.generate(3)
+        return Elasticity(quadratic_mesh(gmsh, 3))
+
+
+def _labels_inside(surfaces: list[tuple[np.ndarray, np.ndarray]], points: np.ndarray) -> np.ndarray:
+    """Per point, the 1-based index of the last closed surface that encloses it (0: none):
+    label 1 inside the first, 2 inside the second (nested in it)."""
+    import pyvista as pv
+
+    cloud = pv.PolyData(points)
+    labels = np.zeros(len(points), np.int16)
+    for label, (vertices, triangles) in enumerate(surfaces, 1):
+        surface = pv.PolyData(vertices, np.c_[np.full(len(triangles), 3), triangles].ravel())
+        inside = cloud.select_interior_points(surface, method="cell_locator", check_surface=False)["selected_points"]
+        labels[np.asarray(inside, bool)] = label
+    return labels
+
+
+def kidney_surfaces(spacing: float = 0.5) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The kidney's and the tumour's exact surfaces at rest (its own frame), points about
+    ``spacing`` apart."""
+    centre, radius = KIDNEY_TUMOUR
+    return [ellipsoid_surface((0.0, 0.0, 0.0), KIDNEY_AXES, spacing), ellipsoid_surface(centre, (radius,) * 3, spacing)]
+
+
+def kidney_labels(surfaces: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
+    """(label map, its affine) of the kidney (1) and the tumour (2) bounded by ``surfaces``
+    (its own frame) on ``kidney_grid``'s voxels."""
+    shape, voxels, affine = kidney_grid()
+    return _labels_inside(surfaces, voxels).reshape(shape), affine
+
+
+def write_label_image(path: Path, labels: np.ndarray, affine: np.ndarray) -> Path:
+    import nibabel as nib
+
+    nib.save(nib.Nifti1Image(labels, affine), str(path))
+    return path
+
+
+def kidney(out, ratio: float, push: float = 6.0, E: float = 10.0, nu: float = 0.4, tumour_size: float = 1.5,
+           far: float = 3.0, spacing: float = 0.5) -> dict:
+    """The kidney solved by scikit-fem (hilum clamped, the probe's face moved by
+    ``kidney_probe_motion(push)``, the rest free; kidney (E, nu), tumour (ratio E, nu)),
+    and imaged: ``rest`` and ``deformed`` (NIfTI label maps, kidney 1, tumour 2: a voxel
+    takes the label of the exact surfaces -- at rest, or moved by the solution -- that
+    enclose its centre) and ``patches`` (JSON: the hilum's and the probe's cutting
+    planes in the world, as a scene spec's [patches] takes them)."""
+    params = {"ratio": ratio, "push": push, "E": E, "nu": nu, "tumour": tumour_size, "far": far, "spacing": spacing}
+
+    def make(folder):
+        model = kidney_model(tumour_size, far)
+        materials = {"kidney": (E, nu), "tumour": (ratio * E, nu)}
+        u = model.solve(materials, {"hilum": constant_motion((0.0, 0.0, 0.0)), "probe": kidney_probe_motion(push)})
+        surfaces = kidney_surfaces(spacing)
+        moved = [(points + evaluate(model.basis, u, points), triangles) for points, triangles in surfaces]
+        files = {name: write_label_image(folder / f"{name}.nii.gz", *kidney_labels(s))
+                 for name, s in (("rest", surfaces), ("deformed", moved))}
+        R, a, b = kidney_rotation(), KIDNEY_AXES[0], KIDNEY_AXES[1]
+        planes = {"hilum": (R @ [-KIDNEY_HILUM * a, 0, 0] + KIDNEY_OFFSET, R @ [-1.0, 0, 0]),
+                  "probe": (R @ [0, KIDNEY_PROBE * b, 0] + KIDNEY_OFFSET, R @ [0, 1.0, 0])}
+        files["patches"] = folder / "patches.json"
+        files["patches"].write_text(json.dumps({k: {"point": p.tolist(), "normal": n.tolist()}
+                                                for k, (p, n) in planes.items()}))
+        return files
+
+    return cached(out, "kidney", params, make)

@@ -82,6 +82,30 @@ def test_tumour_surface_is_shared_by_both_regions_cells(kidney):
     assert np.abs(radius - lm.RADIUS).max() < lm.SPACING.max()  # measured 0.90 mm: gmsh's nodes drift off the 0.35 mm surface
 
 
+def test_a_decimation_that_folds_is_tried_again_then_kept_not_refused(tmp_path):
+    """A kidney-sized body (tests/independent.py: 100 x 56 x 48 mm on 1 x 1 x 1.5 mm
+    voxels, rotated): quadric decimation to organ_size 3 folds two triangles through the
+    surface, and the scene was refused ("passes through itself"). Now the try is made
+    again with twice the triangles and, where that leaves the surface as it was, the
+    shell is kept: closed, the same volume, nothing passing through itself."""
+    import independent
+    from fenics_elasto.geometry.label_surfaces import coarsened
+    from fenics_elasto.mesh.labelmaps import coarsen
+    from fenics_elasto.mesh.repair import NotClosed, enclosed_volume, self_intersecting, shells_of
+
+    labels, affine = independent.kidney_labels(independent.kidney_surfaces())
+    independent.write_label_image(tmp_path / "rest.nii.gz", labels, affine)
+    (tmp_path / "spec.toml").write_text(SPEC.format(image="rest.nii.gz"))
+    body, _ = label_shells(read_scene_spec(tmp_path / "spec.toml"), tmp_path)
+    with pytest.raises(NotClosed, match="passes through itself"):  # what the scene met before
+        shells_of(*coarsened(body.points, body.triangles, 3.0), "body", "body", "kidney")
+    (kept,) = coarsen([body], 3.0)
+    assert len(kept.triangles) == len(body.triangles)
+    assert not self_intersecting(kept.points, kept.triangles).any()
+    assert enclosed_volume(kept.points, kept.triangles) == pytest.approx(4 / 3 * math.pi * independent.KIDNEY_AXES.prod(),
+                                                                        rel=0.01)
+
+
 @pytest.mark.parametrize("suffix", [".nrrd", ".mha"])
 def test_nrrd_and_metaimage_give_the_niftis_world_frame(tmp_path, suffix):
     nifti = read_label_image(scene_from(tmp_path, "seg.nii.gz", lm.label_map()).parent / "seg.nii.gz", "nifti")
