@@ -1120,8 +1120,9 @@ def kidney(out, ratio: float, push: float = 6.0, E: float = 10.0, nu: float = 0.
     ``kidney_probe_motion(push)``, the rest free; kidney (E, nu), tumour (ratio E, nu)),
     and imaged: ``rest`` and ``deformed`` (NIfTI label maps, kidney 1, tumour 2: a voxel
     takes the label of the exact surfaces -- at rest, or moved by the solution -- that
-    enclose its centre) and ``patches`` (JSON: the hilum's and the probe's cutting
-    planes in the world, as a scene spec's [patches] takes them)."""
+    enclose its centre), ``outer`` and ``tumour_surface`` (the exact surfaces moved, in
+    the world: what a perfect segmentation would give) and ``patches`` (JSON: the hilum's
+    and the probe's cutting planes in the world, as a scene spec's [patches] takes them)."""
     params = {"ratio": ratio, "push": push, "E": E, "nu": nu, "tumour": tumour_size, "far": far, "spacing": spacing}
 
     def make(folder):
@@ -1133,6 +1134,8 @@ def kidney(out, ratio: float, push: float = 6.0, E: float = 10.0, nu: float = 0.
         files = {name: write_label_image(folder / f"{name}.nii.gz", *kidney_labels(s))
                  for name, s in (("rest", surfaces), ("deformed", moved))}
         R, a, b = kidney_rotation(), KIDNEY_AXES[0], KIDNEY_AXES[1]
+        for name, (points, triangles) in zip(("outer", "tumour_surface"), moved):
+            files[name] = write_triangles(folder / f"target_{name}.vtp", points @ R.T + KIDNEY_OFFSET, triangles)
         planes = {"hilum": (R @ [-KIDNEY_HILUM * a, 0, 0] + KIDNEY_OFFSET, R @ [-1.0, 0, 0]),
                   "probe": (R @ [0, KIDNEY_PROBE * b, 0] + KIDNEY_OFFSET, R @ [0, 1.0, 0])}
         files["patches"] = folder / "patches.json"

@@ -81,8 +81,11 @@ def smoothed(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     import pyvista as pv
 
     surface = pv.PolyData.from_regular_faces(points, triangles)
+    # No feature-edge smoothing: every vertex of a staircase sits on edges sharper than
+    # VTK's feature angle, and the filter then pins them all -- it moved a 22 mm ball's
+    # points by 3e-5 mm and left its 0.53 mm rms staircase (0.10 mm without).
     result = surface.smooth_taubin(n_iter=TAUBIN_ITERATIONS, pass_band=TAUBIN_PASS_BAND, normalize_coordinates=True,
-                                   boundary_smoothing=False, feature_smoothing=True, non_manifold_smoothing=True)
+                                   boundary_smoothing=False, feature_smoothing=False, non_manifold_smoothing=True)
     return np.asarray(result.points, dtype=float)
 
 
