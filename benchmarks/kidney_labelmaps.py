@@ -20,8 +20,6 @@ own mesh and estimates from the pressed map, as a user would:
 from __future__ import annotations
 
 import argparse
-import json
-import shutil
 import sys
 import time
 from pathlib import Path
@@ -29,50 +27,13 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 import independent  # noqa: E402
-from fenics_elasto.app.cli import main  # noqa: E402
-
-SPEC = """units = "mm"
-size = 8.0
-organ_size = {organ_size}
-[labels]
-image = "rest.nii.gz"
-[body]
-label = [1, 2]
-material = "kidney"
-[regions.tumour]
-label = 2
-[patches.hilum]
-side = {{ point = {hilum[point]}, normal = {hilum[normal]} }}
-[patches.probe]
-side = {{ point = {probe[point]}, normal = {probe[normal]} }}
-"""
-BOUNDARY = ["--set", "boundary.fixed=['hilum']", "--set", "boundary.loaded=['probe']",
-            "--set", "boundary.matched=['outer', 'tumour_surface']"]
-
-
-TARGETS = {"labels": "target={labels={image='../deformed.nii.gz', outer=[1, 2], tumour_surface=2}}",
-           "surfaces": "target={surfaces={outer='../target_outer.vtp', tumour_surface='../target_tumour_surface.vtp'}}"}
 
 
 def run_case(out: Path, ratio: float, push: float, organ_size: float, kind: str = "labels") -> dict:
-    """One chain; ``kind``: the pressed state as a label map, or as the exact surfaces
-    moved (what a perfect segmentation would give)."""
+    """One truth and the user's chain on it (tests/independent.py's kidney_chain)."""
     truth = independent.kidney(out / "truth", ratio, push=push)
-    case = out / f"ratio_{ratio:g}_push_{push:g}"
-    case.mkdir(parents=True, exist_ok=True)
-    for name in ("rest", "deformed"):
-        shutil.copy(truth[name], case / f"{name}.nii.gz")
-    for name in ("outer", "tumour_surface"):
-        shutil.copy(truth[name], case / f"target_{name}.vtp")
-    patches = json.loads(Path(truth["patches"]).read_text())
-    (case / "spec.toml").write_text(SPEC.format(organ_size=organ_size, **patches))
     start = time.perf_counter()
-    assert main(["scene", str(case / "spec.toml"), "--out", str(case / "src")]) == 0
-    problem = case / "src" / "problem.toml"
-    assert main(["train", str(problem), "--synthetic", "60", "--rank", "24", "--out", str(case / "bases.npz")] + BOUNDARY) == 0
-    assert main(["estimate", str(problem), "--out", str(case / f"est_{kind}"), "--set", "reduction={bases='../bases.npz'}",
-                 "--set", TARGETS[kind]] + BOUNDARY) == 0
-    result = json.loads((case / f"est_{kind}" / "result.json").read_text())
+    result = independent.kidney_chain(truth, out / f"ratio_{ratio:g}_push_{push:g}", organ_size, kind)
     entry = result["uncertainty"]["tumour.E"]
     return {"kind": kind, "ratio": ratio, "push": push, "E": result["materials"]["tumour"]["E"], "truth": 10.0 * ratio,
             "ci95": entry["ci95"], "parts": entry.get("parts", {}), "estimate_s": result["wall_time_s"],
@@ -96,7 +57,7 @@ if __name__ == "__main__":
     parser.add_argument("--ratios", type=float, nargs="+", default=[4.0])
     parser.add_argument("--push", type=float, nargs="+", default=[6.0])
     parser.add_argument("--organ-size", type=float, default=3.0)
-    parser.add_argument("--targets", nargs="+", choices=sorted(TARGETS), default=["labels"])
+    parser.add_argument("--targets", nargs="+", choices=sorted(independent.KIDNEY_TARGETS), default=["labels"])
     parser.add_argument("--out", type=Path, default=Path("out/kidney_labelmaps"))
     args = parser.parse_args()
     rows = [run_case(args.out, ratio, push, args.organ_size, kind)

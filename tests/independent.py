@@ -1144,3 +1144,50 @@ def kidney(out, ratio: float, push: float = 6.0, E: float = 10.0, nu: float = 0.
         return files
 
     return cached(out, "kidney", params, make)
+
+
+KIDNEY_SPEC = """units = "mm"
+size = 8.0
+organ_size = {organ_size}
+[labels]
+image = "rest.nii.gz"
+[body]
+label = [1, 2]
+material = "kidney"
+[regions.tumour]
+label = 2
+[patches.hilum]
+side = {{ point = {hilum[point]}, normal = {hilum[normal]} }}
+[patches.probe]
+side = {{ point = {probe[point]}, normal = {probe[normal]} }}
+"""
+KIDNEY_BOUNDARY = ["--set", "boundary.fixed=['hilum']", "--set", "boundary.loaded=['probe']",
+                   "--set", "boundary.matched=['outer', 'tumour_surface']"]
+KIDNEY_TARGETS = {
+    "labels": "target={labels={image='../deformed.nii.gz', outer=[1, 2], tumour_surface=2}}",
+    "surfaces": "target={surfaces={outer='../target_outer.vtp', tumour_surface='../target_tumour_surface.vtp'}}"}
+
+
+def kidney_chain(truth: dict, folder: Path, organ_size: float = 3.0, kind: str = "labels") -> dict:
+    """What a user runs on ``kidney``'s images, in ``folder``: `scene` of the rest label
+    map (the hilum and the probe's face as plane-cut patches), `train --synthetic 60
+    --rank 24`, `estimate` of the tumour's E from the pressed state -- its label map
+    (``kind`` "labels") or the exact surfaces moved ("surfaces"). Returns result.json."""
+    import shutil
+
+    from fenics_elasto.app.cli import main
+
+    folder.mkdir(parents=True, exist_ok=True)
+    for name, file in (("rest", "rest.nii.gz"), ("deformed", "deformed.nii.gz"), ("outer", "target_outer.vtp"),
+                       ("tumour_surface", "target_tumour_surface.vtp")):
+        shutil.copy(truth[name], folder / file)
+    patches = json.loads(Path(truth["patches"]).read_text())
+    (folder / "spec.toml").write_text(KIDNEY_SPEC.format(organ_size=organ_size, **patches))
+    assert main(["scene", str(folder / "spec.toml"), "--out", str(folder / "src")]) == 0
+    problem = str(folder / "src" / "problem.toml")
+    bases = str(folder / "bases.npz")
+    assert main(["train", problem, "--synthetic", "60", "--rank", "24", "--out", bases] + KIDNEY_BOUNDARY) == 0
+    estimate = folder / f"est_{kind}"
+    assert main(["estimate", problem, "--out", str(estimate), "--set", "reduction={bases='../bases.npz'}",
+                 "--set", KIDNEY_TARGETS[kind]] + KIDNEY_BOUNDARY) == 0
+    return json.loads((estimate / "result.json").read_text())
