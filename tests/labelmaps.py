@@ -35,9 +35,19 @@ def centre_mm() -> np.ndarray:
 def label_map(scale: float = 1.0) -> np.ndarray:
     """The kidney (1) with the tumour (2) in it; ``scale`` grows both about the centre."""
     grid = np.stack(np.meshgrid(*[np.arange(n) for n in SHAPE], indexing="ij"), axis=-1) * SPACING - centre_mm()
-    labels = np.zeros(SHAPE, np.int16)
-    labels[((grid / (scale * AXES)) ** 2).sum(axis=-1) <= 1] = 1
-    labels[(grid**2).sum(axis=-1) <= (scale * RADIUS) ** 2] = 2
+    return _labels(grid, scale)
+
+
+def labels_at(x: np.ndarray) -> np.ndarray:
+    """The exact shapes' label (0, 1 or 2) at world points x (n, 3)."""
+    return _labels((x - OFFSET) @ rotation() - centre_mm(), 1.0)
+
+
+def _labels(offsets: np.ndarray, scale: float) -> np.ndarray:
+    """Labels at offsets from the centre along the image's axes, in mm (..., 3)."""
+    labels = np.zeros(offsets.shape[:-1], np.int16)
+    labels[((offsets / (scale * AXES)) ** 2).sum(axis=-1) <= 1] = 1
+    labels[(offsets**2).sum(axis=-1) <= (scale * RADIUS) ** 2] = 2
     return labels
 
 
