@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from fenics_elasto.util.errors import on_root, require
+from fenics_elasto.util.errors import UserError, on_root, require
 from fenics_elasto.util.logs import log
 from fenics_elasto.files.outputs import prepare_file, prepare_folder
 from fenics_elasto.app import api
@@ -58,13 +58,25 @@ def run_estimate(problem_path: Path, out: Path, overrides=(), check_mesh: bool =
         answer = api.estimate(scene)
         result = answer.outcome
         if check_mesh and not result["interrupted"]:
-            result.record["mesh_check"] = mesh_check(problem_path, folder.path, overrides, result, answer.basis)
+            result.record["mesh_check"] = mesh_check_or_why(problem_path, folder.path, overrides, result, answer.basis)
         with folder.writing(result.record):
             write_estimate(folder, answer.problem, result)
     distance = result["surface_distance"]
     log.info(f"{title(result)}; rms distance {distance['rms']:.3g}, "
              f"{result['factorizations']} factorizations, {result['wall_time_s']:.1f} s -> {out}")
     return result
+
+
+def mesh_check_or_why(problem_path: Path, out: Path, overrides, result, basis) -> dict:
+    """``mesh_check``, or why it did not finish -- a check refused or stopped by Ctrl-C --
+    as a warning beside the estimate, which is written all the same."""
+    try:
+        return mesh_check(problem_path, out, overrides, result, basis)
+    except (UserError, KeyboardInterrupt) as stopped:
+        why = str(stopped) or type(stopped).__name__
+        result.record["warnings"].append(f"the mesh check did not finish ({why}); the estimate stands as written")
+        log.warning(result.record["warnings"][-1])
+        return {"finished": False, "why": why}
 
 
 def mesh_check(problem_path: Path, out: Path, overrides, result, basis) -> dict:
@@ -96,7 +108,8 @@ def mesh_check(problem_path: Path, out: Path, overrides, result, basis) -> dict:
             result.record["warnings"].append(f"{label} moved {moved:+.1f} % on the source refined once: the source "
                                              "mesh limits the accuracy; refine it (finer organ walls first)")
             log.warning(result.record["warnings"][-1])
-    return {"refined_dofs": fine.model.dofs.num_dofs, "estimated": refined.estimated, "change_percent": change,
+    return {"finished": True, "refined_dofs": fine.model.dofs.num_dofs, "estimated": refined.estimated,
+            "change_percent": change,
             "seconds": round(time.perf_counter() - start, 1)}
 
 

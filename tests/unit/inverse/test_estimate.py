@@ -192,3 +192,26 @@ def test_bad_landmarks(letter_source, tmp_path, capsys):
     _expect_error(capsys, ["estimate", letter_source, "--out", tmp_path,
                            "--set", f"target={{landmarks='{tmp_path / 'lm.csv'}'}}"],
                   "columns")
+
+
+@pytest.mark.parametrize("stop", ["refused", "interrupted"])
+def test_a_mesh_check_that_does_not_finish_keeps_the_estimate(letter_source, letter_target, tmp_path, monkeypatch, stop):
+    """`estimate --check-mesh` ran the check before writing anything, so a check refused
+    (a curved-on-load source with bases: "the nodes of top are not those of the scene")
+    or stopped by Ctrl-C lost the finished estimate. Now result.json is written with the
+    answer and a warning saying why the check did not finish."""
+    from fenics_elasto.app import commands
+    from fenics_elasto.util.errors import UserError
+
+    def mesh_check(*args):
+        raise UserError("source.msh: the nodes of top are not those of the scene") if stop == "refused" \
+            else KeyboardInterrupt()
+
+    monkeypatch.setattr(commands, "mesh_check", mesh_check)
+    assert main(["estimate", str(letter_source), "--out", str(tmp_path / "out"), "--check-mesh",
+                 "--set", f"target.surface='{letter_target}'"]) == 0
+    result = json.loads((tmp_path / "out" / "result.json").read_text())
+    assert abs(result["materials"]["letter"]["nu"] - 0.3) < 0.01
+    assert result["mesh_check"]["finished"] is False
+    assert any("the mesh check did not finish" in w for w in result["warnings"]), result["warnings"]
+    assert (tmp_path / "out" / "forces.csv").is_file()
