@@ -95,6 +95,13 @@ class Surface:
         self._recent = [[x.copy(), simplex, cp, None]] + self._recent[:RECENT - 1]
         return self._recent[0]
 
+    def on_rim(self, x: np.ndarray) -> np.ndarray:
+        """Whether each x's closest point lies on the surface's rim: an edge of one face
+        only (3D), an end of the outline (2D). A point past an open surface's edge lands
+        there; on a closed surface none does."""
+        simplex, cp = self._query(x)
+        return _on_rim(self.points, self.cells, simplex, cp, 1e-7 * max(self.extent, 1e-300))
+
     def outward(self, x: np.ndarray) -> np.ndarray | None:
         """(n, 3) the unit normal of the face closest to each x, pointing out of the
         closed surface whatever order its triangles came in; None for a 2D outline or an
@@ -170,3 +177,35 @@ class Surface:
             q, _ = np.linalg.qr(basis)
             out[rows, :2] = np.swapaxes(q[:, :, :2], 1, 2)
         return out, active
+
+
+def _on_rim(points: np.ndarray, cells: np.ndarray, simplex: np.ndarray, cp: np.ndarray, tolerance: float) -> np.ndarray:
+    """Surface.on_rim: whether each closest point cp (on its ``simplex``) lies within
+    ``tolerance`` of one of that simplex's rim sides."""
+    corners = points[cells[simplex]]
+    sides = cells.shape[1]
+    ends = [(k, (k + 1) % sides) for k in range(sides)] if points.shape[1] == 3 else [(0, 0), (1, 1)]
+    rim = _rim_sides(cells, points.shape[1])[simplex]
+    near = np.zeros(len(simplex), bool)
+    for k, (a, b) in enumerate(ends):
+        near |= rim[:, k] & (_to_segment(cp, corners[:, a], corners[:, b]) <= tolerance)
+    return near
+
+
+def _rim_sides(cells: np.ndarray, dim: int) -> np.ndarray:
+    """(cells, sides): 3D, edge k (vertices k, k + 1) of each face is no other face's;
+    2D, end k of each segment is no other segment's."""
+    if dim == 3:
+        keys = np.sort(np.stack([cells, np.roll(cells, -1, axis=1)], axis=2).reshape(-1, 2), axis=1)
+    else:
+        keys = cells.reshape(-1, 1)
+    _, which, uses = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    return (uses[which.ravel()] == 1).reshape(-1, cells.shape[1])
+
+
+def _to_segment(x: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Distances of the points x to the segments ab (row by row; a == b: to the point)."""
+    ab = b - a
+    length = np.einsum("ij,ij->i", ab, ab)
+    t = np.clip(np.einsum("ij,ij->i", x - a, ab) / np.where(length > 0, length, 1.0), 0.0, 1.0)
+    return np.linalg.norm(x - a - t[:, None] * ab, axis=1)

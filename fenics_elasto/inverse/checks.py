@@ -25,9 +25,71 @@ def check_overlap(problem: InverseProblem) -> float:
     size = float(np.linalg.norm(np.ptp(y, axis=0)))
     distance = float(np.sqrt(np.mean(np.sum(residual[observed] ** 2, axis=1)))) if observed.any() else 0.0
     require(distance < 0.25 * size,
-            f"{problem.scene.path}: the target does not overlap the matched surface "
+            f"{_farthest_file(problem) or problem.scene.path}: the target does not overlap the matched surface "
             f"(rms distance {distance:.3g} vs matched size {size:.3g}); is it in the same units and frame?")
     return problem.misfit.cost(residual)
+
+
+def _farthest_file(problem: InverseProblem) -> str | None:
+    """The target surface farthest (rms) from its matched nodes, named as _target_file does."""
+    x, farthest, name = problem.matched_coords, 0.0, None
+    for state, misfit, spec in zip(problem.states.names, problem.states.misfits, problem.states.specs):
+        term = misfit.terms[0]
+        for i, surface in (enumerate(term.surfaces) if isinstance(term, SurfaceTerm) else ()):
+            rows = np.flatnonzero(term.surface_of == i)
+            rms = float(np.sqrt(np.mean(np.sum((x[rows] - surface.closest(x[rows])) ** 2, axis=1)))) if len(rows) else 0.0
+            if rms > farthest:
+                group = problem.scene.matched[i] if len(term.surfaces) > 1 else "the matched groups"
+                farthest, name = rms, _target_file(spec, group, state)
+    return name
+
+
+# A matched group's target must cover the whole group: where it covers a part, the rest
+# of the group has only the target's edge to go to, and the fit pulls it there (a new
+# user's box with its sides' target cropped at a sixth of their length: E at its bound,
+# 0.2 for 4, the interval spanning every value). Refused when more than UNCOVERED of a
+# group's nodes lie beyond its target's edge, farther from it than BEYOND_EDGE times the
+# distance the nodes covered lie from their target (its 95th percentile: the motion).
+UNCOVERED = 0.05
+BEYOND_EDGE = 5.0
+
+
+def check_coverage(problem: InverseProblem) -> None:
+    """Refuse a state's target surface that covers only part of its matched group (or
+    another group's surface): one line naming the group, its file and the share left out."""
+    x = problem.matched_coords
+    for name, misfit, spec in zip(problem.states.names, problem.states.misfits, problem.states.specs):
+        term = misfit.terms[0]
+        if not isinstance(term, SurfaceTerm):
+            continue
+        for i, surface in enumerate(term.surfaces):
+            rows = np.flatnonzero(term.surface_of == i)
+            group = problem.scene.matched[i] if len(term.surfaces) > 1 else "the matched groups"
+            _check_covered(surface, x[rows], group, _target_file(spec, group, name))
+
+
+def _check_covered(surface, x: np.ndarray, group: str, where: str) -> None:
+    if len(x) == 0:
+        return
+    distance = np.linalg.norm(x - surface.closest(x), axis=1)
+    rim = surface.on_rim(x)
+    covered = distance[~rim]
+    motion = float(np.percentile(covered, 95)) if len(covered) else 0.0
+    beyond = rim & (distance > BEYOND_EDGE * motion)
+    if beyond.mean() > UNCOVERED:
+        raise UserError(f"{where}: covers only part of {group}: {100 * beyond.mean():.0f} % of its nodes lie beyond "
+                        f"the target's edge, up to {distance[beyond].max():.3g} from it (the rest within {motion:.3g}); "
+                        "give the group's whole surface, or match the part it covers as a group of its own")
+
+
+def _target_file(spec: dict, group: str, state: str) -> str:
+    """Where a group's target came from, for the error line."""
+    where = f"[[states]] {state}: target" if state else "[target]"
+    for key in ("surfaces", "labels"):
+        table = spec.get(key) or {}
+        if group in table:
+            return f"{where} {key}.{group} ({table[group]})" if key == "surfaces" else f"{where} labels.{group}"
+    return f"{where} surface ({spec.get('surface')})" if spec.get("surface") else where
 
 
 def check_determined(problem: InverseProblem, basis, options: Options, inner: str) -> str | None:

@@ -105,6 +105,8 @@ def scene_from_mesh(mesh, cell_tags, facet_tags, regions: Mapping[str, int], gro
     extra = plain(dict(settings or {}))
     for key in ("mesh", "materials", "boundary", "degree", "plane"):
         require(key not in extra, f"{SOURCE}: settings.{key}: give it as its own argument")
+    require("curve" not in extra, f"{SOURCE}: settings.curve: a DOLFINx mesh is used as given, never curved on load; "
+            "give it curved (geometry of degree 2, e.g. gmsh's order 2), or write it as .msh for a problem file")
     raw = {"mesh": MESH_NAME, "degree": degree, "plane": plane, "curve": "off", "materials": plain(materials),
            "boundary": plain(dict(boundary or {})), **extra}
     config, _ = validate_problem(copy.deepcopy(raw), SOURCE, None, mesh.geometry.dim)

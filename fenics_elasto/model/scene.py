@@ -118,6 +118,12 @@ class Scene:
         its other tables (``target``, ``optimizer``, ``reduction``, ``solver``,
         ``units``); paths in them are relative to the working directory. Checked as a
         problem file is: a bad name or value raises UserError with one line.
+
+        The mesh is used as given. A problem file's straight-sided (order 1) ``.msh`` is
+        curved on load where its surfaces are curved ([curve], "auto"); this one is not:
+        on curved surfaces that can be worth a few % of E (the pelvis phantom's plain gmsh
+        order-1 source: -7.7 % straight, -3.5 % curved on load). Give the mesh curved -- a geometry
+        of degree 2, e.g. gmsh's order 2 -- or write it as ``.msh`` for a problem file.
         """
         from fenics_elasto.model.own_mesh import scene_from_mesh
 

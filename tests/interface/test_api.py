@@ -206,6 +206,9 @@ def test_bad_arguments_raise_user_error_with_the_cli_line(letter, tmp_path, caps
                            materials={**TWO, "bone": {"E": 1.0, "nu": 0.3}}, boundary={"fixed": ["bottom"]})
     with pytest.raises(fe.UserError, match=r"regions\.inclusion: no cell carries tag 7"):
         fe.Scene.from_mesh(mesh, cell_tags, facet_tags, regions={"matrix": 1, "inclusion": 7}, groups={}, materials=TWO)
+    with pytest.raises(fe.UserError, match="settings.curve: a DOLFINx mesh is used as given"):
+        fe.Scene.from_mesh(mesh, cell_tags, facet_tags, regions={"matrix": 1, "inclusion": 2}, groups={"bottom": 1},
+                           materials=TWO, boundary={"fixed": ["bottom"]}, settings={"curve": "auto"})
     with pytest.raises(fe.UserError, match="unknown facet group 'lid'"):
         fe.Scene.from_mesh(mesh, cell_tags, facet_tags, regions={"matrix": 1, "inclusion": 2}, groups={"bottom": 1},
                            materials=TWO, boundary={"fixed": ["lid"]})
