@@ -179,7 +179,12 @@ def train_bases(problem: InverseProblem, example_paths, rank: int, generator=Non
     data = np.concatenate(columns, axis=1)
     require(np.isfinite(data).all(), "train: an example's displacement is not finite")
     limit = data.shape[1] + (0 if first is None else first.shape[1])
-    W, variance = pca(data, min(rank, limit, problem.force_dofs), first)
+    used = min(rank, limit, problem.force_dofs)
+    if used < rank:
+        affine = "" if first is None else f" and {first.shape[1]} affine motions"
+        log.warning(f"train: rank {used}, not {rank}: {data.shape[1]} examples{affine} on {problem.force_dofs} force "
+                    "dofs span no more; give more examples (--synthetic N) for a higher rank")
+    W, variance = pca(data, used, first)
     coords = problem.loaded.gather(problem.loaded.coords)
     return Bases(W, variance, coords, data.shape[1], held_out=held_out_energy(data, W.shape[1], first))
 

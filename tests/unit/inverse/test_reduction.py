@@ -6,7 +6,7 @@ import json
 import numpy as np
 import pytest
 
-from conftest import run_cli
+from conftest import logged, run_cli
 from fenics_elasto.util.errors import UserError
 from fenics_elasto.inverse.estimator import estimate
 from fenics_elasto.mesh.builtin import build_scene
@@ -77,11 +77,17 @@ def test_taylor_in_reduced_coordinates(letter):
 
 
 def test_bases_from_another_mesh_are_refused(tmp_path, letter):
+    """(And a rank above what the examples span is lowered, and said: a new user asked for
+    rank 50 of 20 examples and was told "rank 32" with no word why.)"""
     source, _ = letter
     trainer = InverseProblem(load_scene(source), target=False)
     examples = [tmp_path / "ex"]
     fine_simulation("letter-a", tmp_path / "ex_scene", 0.4, ["boundary.displacement.top.value=[0.2, -0.5]"])
     (tmp_path / "ex").symlink_to(tmp_path / "ex_scene" / "target")
+    lines: list[str] = []
+    with logged(lines):
+        assert train_bases(trainer, examples, rank=3).W.shape[1] == 1  # one example spans one direction
+    assert any("train: rank 1, not 3: 1 examples" in line for line in lines), lines
     bases = train_bases(trainer, examples, rank=1)
     bases.save(tmp_path / "b.npz")
     W, held_out = load_bases(tmp_path / "b.npz", trainer, None)
