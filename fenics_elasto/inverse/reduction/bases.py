@@ -100,14 +100,33 @@ class Bases:
         if self.atlas is not None:
             return from_atlas(self.W, atlas_order(problem, self.atlas))
         coords = problem.loaded.gather(problem.loaded.coords)
-        same = self.loaded_coords.shape == coords.shape and np.allclose(self.loaded_coords, coords, atol=1e-9)
-        if not same and self.loaded_coords.shape == coords.shape:
-            where = f"{len(coords)} nodes as here, but up to {np.abs(self.loaded_coords - coords).max():.3g} away"
-        else:
-            where = f"{len(self.loaded_coords)} nodes, here {len(coords)}"
-        require(same, f"the bases were trained on other loaded nodes than {problem.scene.path.name}'s ({where}); "
-                      "train them on this mesh or around an atlas")
-        return self.W
+        if self.loaded_coords.shape == coords.shape and np.allclose(self.loaded_coords, coords, atol=1e-9):
+            return self.W
+        order, gap = _same_nodes_moved(self.loaded_coords, coords)
+        where = f"{len(self.loaded_coords)} nodes, here {len(coords)}" if self.loaded_coords.shape != coords.shape \
+            else f"{len(coords)} nodes as here, but as sets up to {gap:.3g} apart"
+        require(order is not None, f"the bases were trained on other loaded nodes than {problem.scene.path.name}'s "
+                f"({where}); train them on this mesh or around an atlas")
+        log.info(f"bases: the loaded nodes matched by position, each nearer its own than any other (up to {gap:.3g} "
+                 "apart: the same mesh curved otherwise)")
+        gdim = coords.shape[1]
+        return self.W.reshape(len(coords), gdim, -1)[order].reshape(self.W.shape)
+
+
+def _same_nodes_moved(trained: np.ndarray, here: np.ndarray) -> tuple[np.ndarray | None, float]:
+    """(for each node here, its trained node; or None, and how far apart the two sets are):
+    the same nodes moved a little or numbered otherwise -- the same mesh curved on load or
+    not, whose edge midpoints move by up to a quarter of their edge and change the order
+    -- each nearer its own trained node than half that node's distance to the next."""
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(trained)
+    gap, order = tree.query(here)
+    if trained.shape != here.shape:
+        return None, float(gap.max(initial=0.0))
+    spacing = tree.query(trained, k=2)[0][:, 1]
+    unique = len(np.unique(order)) == len(order)
+    return (order if unique and (gap <= 0.5 * spacing[order]).all() else None), float(gap.max(initial=0.0))
 
 
 def pca(examples: np.ndarray, rank: int, first: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:

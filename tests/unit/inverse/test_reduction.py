@@ -97,6 +97,33 @@ def test_bases_from_another_mesh_are_refused(tmp_path, letter):
         load_bases(tmp_path / "b.npz", other, None)
 
 
+def test_bases_follow_their_nodes_renumbered_and_moved_a_little(letter):
+    """Bases trained on the same mesh curved otherwise (curve on load, or "off"): the
+    loaded nodes are the same but their edge midpoints moved and their canonical order
+    changed. Each node nearer its own trained node than half that node's spacing: W's
+    rows follow them (a new user's bases were refused, "up to 1.89 away", compared in
+    order). Moved half-way to a neighbour, they are refused as before."""
+    from scipy.spatial import cKDTree
+
+    source, _ = letter
+    problem = InverseProblem(load_scene(source), target=False)
+    coords = problem.loaded.gather(problem.loaded.coords)
+    (n, gdim), rng = coords.shape, np.random.default_rng(0)
+    W = np.linalg.qr(rng.standard_normal((n * gdim, 3)))[0]
+    spacing = cKDTree(coords).query(coords, k=2)[0][:, 1]
+    direction = rng.standard_normal(coords.shape)
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    shuffled = rng.permutation(n)
+    for share, kept in ((0.2, True), (0.6, False)):
+        moved = coords + share * spacing[:, None] * direction
+        trained = Bases(W.reshape(n, gdim, 3)[shuffled].reshape(-1, 3), np.full(3, 1 / 3), moved[shuffled], 10)
+        if kept:
+            assert np.allclose(trained.on(problem), W)
+        else:
+            with pytest.raises(UserError, match="as sets up to"):
+                trained.on(problem)
+
+
 @pytest.mark.slow
 def test_train_then_reduced_estimate_from_the_command_line(tmp_path):
     """Inclusion scene: examples are simulated pushes of the top; the target (finer
