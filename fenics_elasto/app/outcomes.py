@@ -11,6 +11,7 @@ import numpy as np
 from dolfinx import fem
 
 from fenics_elasto.files.outputs import to_json
+from fenics_elasto.inverse.report import WIDENED_NOTE
 from fenics_elasto.files.writers import surface as group_surface
 from fenics_elasto.model.scene import Scene
 from fenics_elasto.util.errors import require
@@ -118,10 +119,15 @@ class Estimate(Solution):
         for label, value in self.values.items():
             sd, (low, high) = self.std[label], self.ci95[label]
             sure = f" ± {sd:.2g} (95 %: {low:.4g} to {high:.4g})" if np.isfinite(sd) else ""
-            parts = (self.record.get("uncertainty") or {}).get(label, {}).get("parts", {})
+            uncertainty = self.record.get("uncertainty") or {}
+            parts = uncertainty.get(label, {}).get("parts", {})
             if sure and any(v > 0 for name, v in parts.items() if name != "noise"):
                 sure += "; parts of sigma: " + ", ".join(f"{name} {v:.2g}" for name, v in parts.items())
+            widened = (uncertainty.get("widened") or {}).get(label, 1.0)
+            if sure and widened > WIDENED_NOTE:
+                sure += f"; widened {widened:.2g}x: the residual is structured, not noise"
             lines.append(f"  {label} = {value:.5g}{sure}")
+        lines += self._offset_lines()
         distance = self.record.get("surface_distance") or {}
         if "rms" in distance:
             lines.append(f"  rms distance to the target {distance['rms']:.3g} (max {distance['max']:.3g})")
@@ -129,3 +135,13 @@ class Estimate(Solution):
                      f"{self.record['wall_time_s']:.1f} s")
         lines += [f"  warning: {text}" for text in self.warnings]
         return "\n".join(lines)
+
+    def _offset_lines(self) -> list[str]:
+        """What a target bigger all round would do (report.describe_offset, from result.json)."""
+        offset = (self.record.get("uncertainty") or {}).get("target_offset")
+        if not offset:
+            return []
+        moved = [f"{label} by {100 * math.expm1(ds):+.2g} %" if label.endswith(".E") else f"{label} by {ds:+.2g}"
+                 for label, ds in offset["shift"].items() if math.isfinite(ds)]
+        return [f"  a target {offset['offset']:.3g} bigger all round (a segmentation bias no residual shows) would "
+                f"move {', '.join(moved)} (first order)"] if moved else []

@@ -40,6 +40,10 @@ def test_letter_a_from_python_is_the_command_lines_answer(letter, tmp_path):
     assert result.u.x.array.size > 1000 and isinstance(result.warnings, list)
     assert json.loads(result.to_json())["materials"]["letter"]["nu"] == result.values["letter.nu"]
     assert "letter.nu = 0.3" in str(result) and "±" in str(result)
+    uncertainty = result.record["uncertainty"]  # the lines the command line prints where they apply
+    uncertainty["widened"], uncertainty["target_offset"] = {"letter.nu": 2.0}, {"offset": 0.01, "shift": {"letter.nu": 0.002}}
+    printed = str(result)
+    assert "widened 2x" in printed and "a target 0.01 bigger all round" in printed and "letter.nu by +0.002" in printed
 
     assert main(["simulate", str(path), "--out", str(tmp_path / "truth"), "--set", "materials.letter.nu=0.35"]) == 0
     surface = tmp_path / "truth" / "surface_outline.vtp"
