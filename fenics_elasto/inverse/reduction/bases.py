@@ -185,7 +185,7 @@ def train_bases(problem: InverseProblem, example_paths, rank: int, generator=Non
     """PCA of the loaded-wall displacements of example targets (surface-matched) and/or
     of synthetic examples (synthetic.Generator)."""
     require(len(example_paths) > 0 or generator is not None, "train: give --examples or --synthetic N")
-    require(rank >= 1, f"--rank must be >= 1, got {rank}")
+    require(rank >= 1, f"the rank (--rank) must be >= 1, got {rank}")
     columns = []
     if example_paths:
         columns.append(example_displacements(problem, [example_target(problem, Path(p)) for p in example_paths]))
@@ -340,7 +340,7 @@ def train_atlas_bases(atlas: dict, patients, rank: int) -> Bases:
 
     ``patients``: (InverseProblem on a mesh built around the atlas, example paths) each.
     """
-    require(rank >= 1, f"--rank must be >= 1, got {rank}")
+    require(rank >= 1, f"the rank (--rank) must be >= 1, got {rank}")
     columns = []
     for i, (patient, examples) in enumerate(patients, 1):
         order = atlas_order(patient, atlas)

@@ -136,13 +136,14 @@ def affine_basis(problem) -> np.ndarray:
 
 def synthetic_examples(problem, generator: Generator) -> np.ndarray:
     """(force_dofs, count) loaded-wall displacements of ``generator.count`` examples."""
-    require(generator.count >= 1, f"--synthetic must be >= 1, got {generator.count}")
+    require(generator.count >= 1, f"the number of synthetic examples (--synthetic) must be >= 1, got {generator.count}")
     forward = problem.forward
     rng = np.random.default_rng(generator.seed)
     length, amplitude = default_scales(problem)
     length = generator.length or length
     amplitude = generator.amplitude or amplitude
-    require(length > 0 and amplitude > 0, f"--length and --amplitude must be > 0, got {length} and {amplitude}")
+    require(length > 0 and amplitude > 0,
+            f"the length and amplitude (--length, --amplitude) must be > 0, got {length} and {amplitude}")
     points = forward.loaded.gather(forward.loaded.coords)
     groups = problem.loaded_groups()
     solved = int(round(generator.solved_share * generator.count))
