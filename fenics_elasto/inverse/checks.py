@@ -5,6 +5,8 @@ and a final fit worse than the target can resolve.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -12,36 +14,64 @@ from fenics_elasto.util.errors import UserError, require
 from fenics_elasto.inverse.displacement_field import correlated_over
 from fenics_elasto.inverse.inner import InnerResult
 from fenics_elasto.inverse.misfit import FieldTerm
+from fenics_elasto.geometry.surface import Surface
 from fenics_elasto.geometry.targets import SurfaceTerm
 from fenics_elasto.inverse.objective import InverseProblem
 from fenics_elasto.inverse.options import Options
 
 
+OVERLAP = 0.25  # a target farther (rms) from its nodes than this share of their extent does not overlap them
+
+
 def check_overlap(problem: InverseProblem) -> float:
-    """Refuse a target that does not lie on the observed surface; return Phi at u = 0."""
+    """Refuse a target that does not lie on the observed surface -- as a whole, or one
+    group's (another group's surface, a swapped file) -- naming the file; return Phi at u = 0."""
     y = problem.points
     residual = problem.residual_at_rest
     observed = problem.misfit.weights > 0
     size = float(np.linalg.norm(np.ptp(y, axis=0)))
     distance = float(np.sqrt(np.mean(np.sum(residual[observed] ** 2, axis=1)))) if observed.any() else 0.0
-    require(distance < 0.25 * size,
-            f"{_farthest_file(problem) or problem.scene.path}: the target does not overlap the matched surface "
+    targets = sorted(_group_targets(problem), key=lambda t: -t.rms)
+    require(distance < OVERLAP * size,
+            f"{targets[0].where if targets else problem.scene.path}: the target does not overlap the matched surface "
             f"(rms distance {distance:.3g} vs matched size {size:.3g}); is it in the same units and frame?")
+    for t in targets:
+        require(t.rms < OVERLAP * t.extent, f"{t.where}: does not overlap {t.group} (rms distance {t.rms:.3g} vs the "
+                f"group's size {t.extent:.3g}): is it another group's surface, or in other units?")
     return problem.misfit.cost(residual)
 
 
-def _farthest_file(problem: InverseProblem) -> str | None:
-    """The target surface farthest (rms) from its matched nodes, named as _target_file does."""
-    x, farthest, name = problem.matched_coords, 0.0, None
+@dataclass
+class _GroupTarget:
+    """One matched group's target surface in one state, its nodes and where it came from."""
+
+    surface: Surface
+    x: np.ndarray  # the group's matched nodes at rest
+    group: str
+    where: str  # the file, as _target_file names it
+
+    @property
+    def rms(self) -> float:
+        return float(np.sqrt(np.mean(np.sum((self.x - self.surface.closest(self.x)) ** 2, axis=1)))) if len(self.x) else 0.0
+
+    @property
+    def extent(self) -> float:
+        return float(np.linalg.norm(np.ptp(self.x, axis=0))) if len(self.x) else 0.0
+
+
+def _group_targets(problem: InverseProblem) -> list[_GroupTarget]:
+    """Every state's target surface per matched group (one for them all with ``surface``)."""
+    x, groups, out = problem.matched_coords, problem.node_groups(), []
     for state, misfit, spec in zip(problem.states.names, problem.states.misfits, problem.states.specs):
         term = misfit.terms[0]
-        for i, surface in (enumerate(term.surfaces) if isinstance(term, SurfaceTerm) else ()):
-            rows = np.flatnonzero(term.surface_of == i)
-            rms = float(np.sqrt(np.mean(np.sum((x[rows] - surface.closest(x[rows])) ** 2, axis=1)))) if len(rows) else 0.0
-            if rms > farthest:
-                group = problem.scene.matched[i] if len(term.surfaces) > 1 else "the matched groups"
-                farthest, name = rms, _target_file(spec, group, state)
-    return name
+        if not isinstance(term, SurfaceTerm):
+            continue
+        one = len(term.surfaces) == 1  # ``surface``: one file for every group, each group checked against it
+        for g, group in enumerate(problem.scene.matched):
+            surface = term.surfaces[0 if one else g]
+            where = _target_file(spec, "the matched groups" if one else group, state)
+            out.append(_GroupTarget(surface, x[(groups if one else term.surface_of) == g], group, where))
+    return out
 
 
 # A matched group's target must cover the whole group: where it covers a part, the rest
@@ -55,17 +85,10 @@ BEYOND_EDGE = 5.0
 
 
 def check_coverage(problem: InverseProblem) -> None:
-    """Refuse a state's target surface that covers only part of its matched group (or
-    another group's surface): one line naming the group, its file and the share left out."""
-    x = problem.matched_coords
-    for name, misfit, spec in zip(problem.states.names, problem.states.misfits, problem.states.specs):
-        term = misfit.terms[0]
-        if not isinstance(term, SurfaceTerm):
-            continue
-        for i, surface in enumerate(term.surfaces):
-            rows = np.flatnonzero(term.surface_of == i)
-            group = problem.scene.matched[i] if len(term.surfaces) > 1 else "the matched groups"
-            _check_covered(surface, x[rows], group, _target_file(spec, group, name))
+    """Refuse a state's target surface that covers only part of its matched group: one
+    line naming the group, its file and the share left out."""
+    for t in _group_targets(problem):
+        _check_covered(t.surface, t.x, t.group, t.where)
 
 
 def _check_covered(surface, x: np.ndarray, group: str, where: str) -> None:

@@ -221,10 +221,11 @@ def test_a_target_that_covers_part_of_its_group_is_refused(scenes, tmp_path):
     """The phantom's organ surfaces as simulated, the bladder's cut in half: half of
     the bladder's nodes have only the cut's edge to go to. Refused before any fit,
     naming the file and the share left out (a new user's box with its sides' target
-    cropped got E at its bound, 0.2 for 4); the whole surfaces pass."""
+    cropped got E at its bound, 0.2 for 4); two groups' files swapped, refused as not
+    overlapping; the whole surfaces pass."""
     import pyvista as pv
 
-    from fenics_elasto.inverse.checks import check_coverage
+    from fenics_elasto.inverse.checks import check_coverage, check_overlap
     from fenics_elasto.util.errors import UserError
 
     problem = scenes["prostate-phantom"]
@@ -235,8 +236,13 @@ def test_a_target_that_covers_part_of_its_group_is_refused(scenes, tmp_path):
 
     def checked(surfaces: dict) -> None:
         table = ", ".join(f"{g}='{f}'" for g, f in surfaces.items())
-        check_coverage(InverseProblem(load_scene(problem, [f"target.surfaces={{{table}}}"])))
+        inverse = InverseProblem(load_scene(problem, [f"target.surfaces={{{table}}}"]))
+        check_overlap(inverse)
+        check_coverage(inverse)
 
     checked(files)
     with pytest.raises(UserError, match=r"half_bladder.vtp\): covers only part of bladder: \d+ % of its nodes"):
         checked({**files, "bladder": tmp_path / "half_bladder.vtp"})
+    # two files swapped: each group's nodes far from the other's surface (before: "the data do not determine")
+    with pytest.raises(UserError, match=r"surface_(bladder|rectum).vtp\): does not overlap (rectum|bladder) \(rms"):
+        checked({**files, "bladder": files["rectum"], "rectum": files["bladder"]})
