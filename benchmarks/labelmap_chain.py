@@ -34,31 +34,14 @@ import labelmaps as lm  # noqa: E402
 from fenics_elasto.app.cli import main  # noqa: E402
 
 TRUE_RATIO = 4.0
-SPEC = """units = "mm"
-size = 8.0
-organ_size = 2.5
-[labels]
-image = "rest.nii.gz"
-[body]
-label = [1, 2]
-material = "kidney"
-[regions.tumour]
-label = 2
-[patches.hilum]
-side = {{ point = {hilum}, normal = {hilum_normal} }}
-[patches.probe]
-side = {{ point = {probe}, normal = {probe_normal} }}
-"""
-
-
 def sides() -> dict:
-    """The hilum at one end of the kidney's long axis, the probe at the other's side."""
+    """The hilum at one end of the kidney's long axis, the probe at the other's side: name
+    -> (point, normal) of each cutting plane; "push": the probe's displacement."""
     axis = lm.rotation() @ np.array([1.0, 0.0, 0.0])  # the ellipsoid's first axis, in the world
     side = lm.rotation() @ np.array([0.0, 1.0, 0.0])
     centre = lm.world_centre()
-    fmt = lambda v: "[" + ", ".join(f"{x:.6g}" for x in v) + "]"  # noqa: E731
-    return {"hilum": fmt(centre - 0.8 * lm.AXES[0] * axis), "hilum_normal": fmt(-axis),
-            "probe": fmt(centre + 0.7 * lm.AXES[1] * side), "probe_normal": fmt(side), "push": -4.5 * side}
+    return {"hilum": (centre - 0.8 * lm.AXES[0] * axis, -axis), "probe": (centre + 0.7 * lm.AXES[1] * side, side),
+            "push": -4.5 * side}
 
 
 def warped(labels: np.ndarray, u) -> np.ndarray:
@@ -92,7 +75,7 @@ def run(out: Path) -> None:
     rest = lm.label_map()
     lm.write_nifti(out / "rest.nii.gz", rest)
     geometry = sides()
-    (out / "spec.toml").write_text(SPEC.format(**{k: v for k, v in geometry.items() if k != "push"}))
+    (out / "spec.toml").write_text(lm.kidney_spec("rest.nii.gz", 2.5, {k: geometry[k] for k in ("hilum", "probe")}))
     assert main(["scene", str(out / "spec.toml"), "--out", str(out / "src")]) == 0
     problem = out / "src" / "problem.toml"
     truth = fe.load_scene(problem, overrides={"materials.tumour.E": TRUE_RATIO * 10.0, "boundary.fixed": ["hilum"],

@@ -1146,21 +1146,6 @@ def kidney(out, ratio: float, push: float = 6.0, E: float = 10.0, nu: float = 0.
     return cached(out, "kidney", params, make)
 
 
-KIDNEY_SPEC = """units = "mm"
-size = 8.0
-organ_size = {organ_size}
-[labels]
-image = "rest.nii.gz"
-[body]
-label = [1, 2]
-material = "kidney"
-[regions.tumour]
-label = 2
-[patches.hilum]
-side = {{ point = {hilum[point]}, normal = {hilum[normal]} }}
-[patches.probe]
-side = {{ point = {probe[point]}, normal = {probe[normal]} }}
-"""
 KIDNEY_BOUNDARY = ["--set", "boundary.fixed=['hilum']", "--set", "boundary.loaded=['probe']",
                    "--set", "boundary.matched=['outer', 'tumour_surface']"]
 KIDNEY_TARGETS = {
@@ -1181,8 +1166,10 @@ def kidney_chain(truth: dict, folder: Path, organ_size: float = 3.0, kind: str =
     for name, file in (("rest", "rest.nii.gz"), ("deformed", "deformed.nii.gz"), ("outer", "target_outer.vtp"),
                        ("tumour_surface", "target_tumour_surface.vtp")):
         shutil.copy(truth[name], folder / file)
-    patches = json.loads(Path(truth["patches"]).read_text())
-    (folder / "spec.toml").write_text(KIDNEY_SPEC.format(organ_size=organ_size, **patches))
+    import labelmaps
+
+    planes = {name: (p["point"], p["normal"]) for name, p in json.loads(Path(truth["patches"]).read_text()).items()}
+    (folder / "spec.toml").write_text(labelmaps.kidney_spec("rest.nii.gz", organ_size, planes))
     assert main(["scene", str(folder / "spec.toml"), "--out", str(folder / "src")]) == 0
     problem = str(folder / "src" / "problem.toml")
     bases = str(folder / "bases.npz")

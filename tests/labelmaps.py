@@ -81,3 +81,15 @@ def write_itk(path, labels: np.ndarray) -> None:
     image.SetOrigin(OFFSET.tolist())
     image.SetDirection(rotation().ravel().tolist())
     sitk.WriteImage(image, str(path))
+
+
+def kidney_spec(image: str, organ_size: float = 2.5, patches: dict | None = None) -> str:
+    """A scene spec (interface.md, "Scenes from label maps") of a kidney label map: the
+    body labels 1 and 2, the tumour region label 2, and ``patches`` (name -> (point,
+    normal), world coordinates) cut from its surface by planes."""
+    text = (f'units = "mm"\nsize = 8.0\norgan_size = {organ_size:g}\n[labels]\nimage = "{image}"\n'
+            '[body]\nlabel = [1, 2]\nmaterial = "kidney"\n[regions.tumour]\nlabel = 2\n')
+    for name, (point, normal) in (patches or {}).items():
+        listed = [[float(x) for x in v] for v in (point, normal)]
+        text += f"[patches.{name}]\nside = {{ point = {listed[0]}, normal = {listed[1]} }}\n"
+    return text

@@ -22,17 +22,7 @@ from fenics_elasto.mesh.repair import enclosed_volume
 from fenics_elasto.model.scene import load_scene
 from test_anatomy import measures
 
-SPEC = """units = "mm"
-size = 8.0
-organ_size = 2.5
-[labels]
-image = "{image}"
-[body]
-label = [1, 2]
-material = "kidney"
-[regions.tumour]
-label = 2
-"""
+SPEC = lm.kidney_spec("{image}")  # a template: .format(image=...)
 BALL = 4 / 3 * math.pi * lm.RADIUS**3
 ELLIPSOID = 4 / 3 * math.pi * lm.AXES.prod()
 
