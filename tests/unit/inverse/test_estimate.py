@@ -246,3 +246,20 @@ def test_a_target_that_covers_part_of_its_group_is_refused(scenes, tmp_path):
     # two files swapped: each group's nodes far from the other's surface (before: "the data do not determine")
     with pytest.raises(UserError, match=r"surface_(bladder|rectum).vtp\): does not overlap (rectum|bladder) \(rms"):
         checked({**files, "bladder": files["rectum"], "rectum": files["bladder"]})
+
+
+def test_an_interval_past_a_bound_is_said():
+    """The label-map chain pushed 1.5 mm: 294 in 45-1578 for bounds 2-500. The interval
+    is the data's, the bounds the user's prior; where it reaches past one, the run says
+    the data bound the constant on one side only."""
+    from types import SimpleNamespace
+
+    from fenics_elasto.inverse.report import _open_interval_warnings
+
+    params = SimpleNamespace(labels=["tumour.E", "tissue.nu"], bounds=[(2.0, 500.0), (0.1, 0.49)])
+    post = SimpleNamespace(interval=lambda: np.array([[45.28, 1578.4], [0.3, 0.35]]))
+    (line,) = _open_interval_warnings(params, post)
+    assert line.startswith("tumour.E: its 95 % interval (45.28-1578) reaches past its upper bound 500")
+    assert "at least 45.28" in line
+    post = SimpleNamespace(interval=lambda: np.array([[1.2, 60.0], [0.05, 0.35]]))
+    assert [w.split(":")[0] for w in _open_interval_warnings(params, post)] == ["tumour.E", "tissue.nu"]
