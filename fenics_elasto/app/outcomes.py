@@ -11,7 +11,7 @@ import numpy as np
 from dolfinx import fem
 
 from fenics_elasto.files.outputs import to_json
-from fenics_elasto.inverse.report import WIDENED_NOTE
+from fenics_elasto.inverse.report import offset_lines, widened_note
 from fenics_elasto.files.writers import surface as group_surface
 from fenics_elasto.model.scene import Scene
 from fenics_elasto.util.errors import require
@@ -123,9 +123,8 @@ class Estimate(Solution):
             parts = uncertainty.get(label, {}).get("parts", {})
             if sure and any(v > 0 for name, v in parts.items() if name != "noise"):
                 sure += "; parts of sigma: " + ", ".join(f"{name} {v:.2g}" for name, v in parts.items())
-            widened = (uncertainty.get("widened") or {}).get(label, 1.0)
-            if sure and widened > WIDENED_NOTE:
-                sure += f"; widened {widened:.2g}x: the residual is structured, not noise"
+            if sure:
+                sure += widened_note((uncertainty.get("widened") or {}).get(label, 1.0))
             lines.append(f"  {label} = {value:.5g}{sure}")
         lines += self._offset_lines()
         distance = self.record.get("surface_distance") or {}
@@ -141,7 +140,5 @@ class Estimate(Solution):
         offset = (self.record.get("uncertainty") or {}).get("target_offset")
         if not offset:
             return []
-        moved = [f"{label} by {100 * math.expm1(ds):+.2g} %" if label.endswith(".E") else f"{label} by {ds:+.2g}"
-                 for label, ds in offset["shift"].items() if math.isfinite(ds)]
-        return [f"  a target {offset['offset']:.3g} bigger all round (a segmentation bias no residual shows) would "
-                f"move {', '.join(moved)} (first order)"] if moved else []
+        shifts = [(label, ds, label.endswith(".E")) for label, ds in offset["shift"].items()]
+        return ["  " + line for line in offset_lines(offset["offset"], shifts)]

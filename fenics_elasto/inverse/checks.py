@@ -25,7 +25,8 @@ OVERLAP = 0.25  # a target farther (rms) from its nodes than this share of their
 
 def check_overlap(problem: InverseProblem) -> float:
     """Refuse a target that does not lie on the observed surface -- as a whole, or one
-    group's (another group's surface, a swapped file) -- naming the file; return Phi at u = 0."""
+    group's (another group's surface, a swapped file) -- or that covers only part of its
+    group, naming the file; return Phi at u = 0."""
     y = problem.points
     residual = problem.residual_at_rest
     observed = problem.misfit.weights > 0
@@ -38,21 +39,25 @@ def check_overlap(problem: InverseProblem) -> float:
     for t in targets:
         require(t.rms < OVERLAP * t.extent, f"{t.where}: does not overlap {t.group} (rms distance {t.rms:.3g} vs the "
                 f"group's size {t.extent:.3g}): is it another group's surface, or in other units?")
+    for t in targets:
+        _check_covered(t)
     return problem.misfit.cost(residual)
 
 
 @dataclass
 class _GroupTarget:
-    """One matched group's target surface in one state, its nodes and where it came from."""
+    """One matched group's target surface in one state, its nodes, their distances to
+    it and where it came from."""
 
     surface: Surface
     x: np.ndarray  # the group's matched nodes at rest
+    distance: np.ndarray  # ... and each one's distance to the surface
     group: str
     where: str  # the file, as _target_file names it
 
     @property
     def rms(self) -> float:
-        return float(np.sqrt(np.mean(np.sum((self.x - self.surface.closest(self.x)) ** 2, axis=1)))) if len(self.x) else 0.0
+        return float(np.sqrt(np.mean(self.distance**2))) if len(self.x) else 0.0
 
     @property
     def extent(self) -> float:
@@ -68,9 +73,10 @@ def _group_targets(problem: InverseProblem) -> list[_GroupTarget]:
             continue
         one = len(term.surfaces) == 1  # ``surface``: one file for every group, each group checked against it
         for g, group in enumerate(problem.scene.matched):
-            surface = term.surfaces[0 if one else g]
-            where = _target_file(spec, "the matched groups" if one else group, state)
-            out.append(_GroupTarget(surface, x[(groups if one else term.surface_of) == g], group, where))
+            surface, mine = term.surfaces[0 if one else g], x[(groups if one else term.surface_of) == g]
+            distance = np.linalg.norm(mine - surface.closest(mine), axis=1)
+            out.append(_GroupTarget(surface, mine, distance, group, _target_file(spec, "the matched groups" if one
+                                                                                 else group, state)))
     return out
 
 
@@ -84,25 +90,19 @@ UNCOVERED = 0.05
 BEYOND_EDGE = 5.0
 
 
-def check_coverage(problem: InverseProblem) -> None:
-    """Refuse a state's target surface that covers only part of its matched group: one
-    line naming the group, its file and the share left out."""
-    for t in _group_targets(problem):
-        _check_covered(t.surface, t.x, t.group, t.where)
-
-
-def _check_covered(surface, x: np.ndarray, group: str, where: str) -> None:
-    if len(x) == 0:
+def _check_covered(t: _GroupTarget) -> None:
+    """Refuse a target surface that covers only part of its matched group: one line
+    naming the group, its file and the share left out."""
+    if len(t.x) == 0:
         return
-    distance = np.linalg.norm(x - surface.closest(x), axis=1)
-    rim = surface.on_rim(x)
-    covered = distance[~rim]
+    rim = t.surface.on_rim(t.x)
+    covered = t.distance[~rim]
     motion = float(np.percentile(covered, 95)) if len(covered) else 0.0
-    beyond = rim & (distance > BEYOND_EDGE * motion)
+    beyond = rim & (t.distance > BEYOND_EDGE * motion)
     if beyond.mean() > UNCOVERED:
-        raise UserError(f"{where}: covers only part of {group}: {100 * beyond.mean():.0f} % of its nodes lie beyond "
-                        f"the target's edge, up to {distance[beyond].max():.3g} from it (the rest within {motion:.3g}); "
-                        "give the group's whole surface, or match the part it covers as a group of its own")
+        raise UserError(f"{t.where}: covers only part of {t.group}: {100 * beyond.mean():.0f} % of its nodes lie "
+                        f"beyond the target's edge, up to {t.distance[beyond].max():.3g} from it (the rest within "
+                        f"{motion:.3g}); give the group's whole surface, or match the part it covers as a group of its own")
 
 
 def _target_file(spec: dict, group: str, state: str) -> str:

@@ -30,8 +30,7 @@ from scipy.spatial import cKDTree
 
 from fenics_elasto.geometry.matching import joined_motion, match_surface
 from fenics_elasto.geometry.targets import SurfaceTerm
-from fenics_elasto.inverse.checks import (check_coverage, check_determined, check_extent, check_overlap,
-                                          target_warnings)
+from fenics_elasto.inverse.checks import check_determined, check_extent, check_overlap, target_warnings
 from fenics_elasto.inverse.inner import LBFGS, GaussNewton, InnerResult, fitted_to
 from fenics_elasto.inverse.linearisation import ProfiledLinearisation
 from fenics_elasto.inverse.measured_force import (apply_measured_force, measured_forces,
@@ -323,7 +322,6 @@ def estimate(problem: InverseProblem, options: Options | None = None, basis: np.
             "or give a measured force ([boundary.measured_force.GROUP])")
     options = options or Options.from_scene(scene)
     phi_undeformed = check_overlap(problem)
-    check_coverage(problem)
     extent_warnings = check_extent(problem)
     checks = [check_determined(problem, basis, options, choose_inner(problem, options, basis)),
               None if basis is None else reach_warning(held_out, basis.shape[1])]

@@ -26,12 +26,16 @@ if TYPE_CHECKING:  # the driver these functions report on (it imports them)
 def describe_uncertainty(post: Posterior, theta) -> list[str]:
     """``prostate.E = 48.6 ± 1.9 (95 %: 45.0-52.4)`` per estimated constant, and how much
     a structured residual widened it (posterior.patch_covariance)."""
-    return [f"{label} = {value:.4g} ± {sd:.2g} (95 %: {lo:.4g}-{hi:.4g})"
-            + (f"; widened {w:.2g}x: the residual is structured, not noise" if w > WIDENED_NOTE else "")
+    return [f"{label} = {value:.4g} ± {sd:.2g} (95 %: {lo:.4g}-{hi:.4g}){widened_note(w)}"
             for label, value, sd, (lo, hi), w in zip(post.labels, theta, post.std(), post.interval(), post.widening)]
 
 
 WIDENED_NOTE = 1.05  # a widening of the interval worth a word
+
+
+def widened_note(widening: float) -> str:
+    """``; widened 2x: ...`` where a structured residual widened an interval that much, else ""."""
+    return f"; widened {widening:.2g}x: the residual is structured, not noise" if widening > WIDENED_NOTE else ""
 
 
 def describe_offset(post: Posterior) -> list[str]:
@@ -39,8 +43,14 @@ def describe_offset(post: Posterior) -> list[str]:
     if post.offset is None:
         return []
     delta, ds = post.offset
+    return offset_lines(delta, zip(post.labels, ds, post.is_E))
+
+
+def offset_lines(delta: float, shifts) -> list[str]:
+    """The line of ``describe_offset`` from the offset ``delta`` and (label, shift in s,
+    is E) per constant -- also what result.json's target_offset holds."""
     moved = [f"{label} by {100 * np.expm1(d):+.2g} %" if is_E else f"{label} by {d:+.2g}"
-             for label, d, is_E in zip(post.labels, ds, post.is_E) if np.isfinite(d)]
+             for label, d, is_E in shifts if np.isfinite(d)]
     if not moved:
         return []
     return [f"a target {delta:.3g} bigger all round (a tenth of its edge: a segmentation bias no residual shows) "
