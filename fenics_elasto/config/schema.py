@@ -58,7 +58,7 @@ def given(value) -> str:
 
 
 def key_text(key) -> str:
-    return key if re.fullmatch(r"[A-Za-z0-9_-]+", str(key)) else json.dumps(str(key), ensure_ascii=False)
+    return str(key) if re.fullmatch(r"[A-Za-z0-9_-]+", str(key)) else json.dumps(str(key), ensure_ascii=False)
 
 
 def suggestion(word: str, known) -> str | None:
@@ -87,7 +87,10 @@ class Where:
         return self.source
 
     def path(self, table: bool = False) -> str:
-        dotted = ".".join(map(key_text, self.keys))
+        """The keys dotted, a list's item by its index: ``states[0].measured_force``."""
+        dotted = ""
+        for key in self.keys:
+            dotted += f"[{key}]" if isinstance(key, int) else ("." if dotted else "") + key_text(key)
         return f"[{dotted}]" if table else dotted
 
     def fail(self, text: str, table: bool = False):

@@ -171,6 +171,14 @@ BAD_PROBLEMS = {
                           ["expected a number > 0, got 0"]),
     "noise negative": ({"target": {"noise": -0.1}}, (), "estimate", "problem.toml: target.noise:", ["got -0.1"]),
     "smooth unknown": ({"target": {"smooth": "yes"}}, (), "estimate", "problem.toml: target.smooth:", ["auto", "off"]),
+    # several states: a list's item is named by its index (these ended in a TypeError)
+    "state's force on a group not loaded": ({"target": DROP, "states": [
+        {"name": "a", "target": {"surface": "a.vtp"}, "measured_force": {"feet": {"value": [0.0, 1.0], "noise": 0.1}}},
+        {"name": "b", "target": {"surface": "b.vtp"}}]}, (), "estimate", "problem.toml: states[0].measured_force.feet:",
+        ["not in boundary.loaded"]),
+    "state's key typo": ({"target": DROP, "states": [{"name": "a", "target": {"surface": "a.vtp"}},
+                                                      {"name": "b", "target": {"surface": "b.vtp"}, "measured_forc": {}}]},
+                         (), "estimate", "problem.toml: [states[1].measured_forc]:", ["did you mean [states[1].measured_force]?"]),
     # optimizer
     "optimizer a number": ({"optimizer": 5}, (), "estimate", "problem.toml: optimizer:", ["expected a table, got 5"]),
     "optimizer typo": ({"optimiser": {"scan": 3}}, (), "estimate", "problem.toml: [optimiser]:",
