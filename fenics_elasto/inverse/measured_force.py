@@ -27,6 +27,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from fenics_elasto.inverse.uncertainty.profile_interval import Z95
+from fenics_elasto.util.errors import UserError
 from fenics_elasto.util.logs import log
 
 
@@ -40,6 +41,12 @@ class MeasuredForce:
     @property
     def label(self) -> str:
         return f"{self.state}.{self.group}" if self.state else self.group
+
+    @property
+    def key(self) -> str:
+        """Where it was given, for messages."""
+        return f"[[states]] {self.state}: measured_force.{self.group}" if self.state else \
+            f"boundary.measured_force.{self.group}"
 
 
 def measured_forces(scene) -> list[MeasuredForce]:
@@ -153,6 +160,7 @@ def apply_measured_force(problem, result, measured: list[MeasuredForce]) -> None
         predicted[m.label] = group_forces(problem, forces)[m.group]
     scale = force_scale(predicted, measured, result.force_covariance)
     s = scale.value
+    _check_direction(problem, predicted, measured, s)
     is_E = problem.params.is_E
     ratio_std = {label: entry["std"] for label, entry in record.get("uncertainty", {}).items()
                  if isinstance(entry, dict) and "std" in entry}
@@ -169,7 +177,10 @@ def apply_measured_force(problem, result, measured: list[MeasuredForce]) -> None
             low, high = (s * end for end in entry["ci95"])  # the ratio's interval (profiled: maybe asymmetric)
             entry["std"] = float(np.hypot(s * ratio_std.get(label, 0.0), by_force))
             entry["ci95"] = [E - float(np.hypot(E - low, Z95 * by_force)), E + float(np.hypot(high - E, Z95 * by_force))]
-            entry.setdefault("parts", {})["force"] = by_force
+            parts = entry.setdefault("parts", {})
+            parts.update({part: s * value for part, value in parts.items()})  # the ratio's parts, in E's units now
+            parts["force"] = by_force
+    _scale_stds(record.get("uncertainty", {}), s)
     reference = problem.scene.force_reference
     if reference:  # reported as estimated: the force determined it
         result.labels = [f"{reference}.E", *result.labels]
@@ -179,9 +190,66 @@ def apply_measured_force(problem, result, measured: list[MeasuredForce]) -> None
         "groups": {m.label: {"measured": m.value.tolist(), "predicted": (s * predicted[m.label]).tolist(),
                              "noise": m.noise} for m in measured}}
     log.info(f"measured force: every E and force scaled by {s:.4g} ± {scale.std:.2g} "
-             f"(chi2 {scale.chi2:.3g} on {scale.dof} dof)")
+             f"(chi2 {scale.chi2:.3g} on {scale.dof} dof); the lines above were relative to the reference, now:")
+    for line in scaled_lines(record):
+        log.info(line)
+    for text in _outside_bounds(problem, record):
+        log.warning(text)
+        record.setdefault("warnings", []).append(text)
     if scale.dof > 0 and scale.chi2 > scale.dof + 3.0 * np.sqrt(2.0 * scale.dof) + 9.0:
         text = (f"the measured force and the fitted motion disagree (chi2 {scale.chi2:.3g} on {scale.dof} dof): the "
                 "predicted force points elsewhere; check the force's frame and group, or its noise")
         log.warning(text)
         record.setdefault("warnings", []).append(text)
+
+
+def _check_direction(problem, predicted: dict[str, np.ndarray], measured: list[MeasuredForce], s: float) -> None:
+    """Refuse a scale <= 0: the measured force points against the force the fitted motion
+    needs, which no positive E gives -- most often the reaction on the probe given for
+    the force on the body (every E came out negative, with no warning)."""
+    if s > 0:
+        return
+    against = [m for m in measured if float(predicted[m.label] @ m.value) < 0] or measured
+    m = against[0]
+    raise UserError(f"{problem.scene.path}: {m.key}: the measured force {_vector(m.value)} points against the force "
+                    f"the fitted motion needs through {m.group} ({_vector(predicted[m.label])} at the reference's E; "
+                    f"scale {s:.3g}): give the force the group applies to the body, not its reaction on the probe")
+
+
+def _vector(v: np.ndarray) -> str:
+    return "[" + ", ".join(f"{x:.3g}" for x in v) + "]"
+
+
+# result.json's uncertainty entries in E's units that a scale multiplies (``widened`` is a ratio)
+SCALED_ENTRIES = ("noise_only_std", "patch_std", "mesh_shift")
+
+
+def _scale_stds(uncertainty: dict, s: float) -> None:
+    """The per-E entries of result.json's uncertainty that are in E's units, scaled."""
+    for key in SCALED_ENTRIES:
+        for label, value in (uncertainty.get(key) or {}).items():
+            if label.endswith(".E") and value is not None:
+                uncertainty[key][label] = s * value
+
+
+def scaled_lines(record: dict) -> list[str]:
+    """``inclusion.E = 3.107 ± 0.94 (95 %: 1.71-5.626)`` per E, after the force's scale."""
+    out = []
+    for name, values in record["materials"].items():
+        entry = record.get("uncertainty", {}).get(f"{name}.E")
+        if isinstance(entry, dict) and "ci95" in entry:
+            low, high = entry["ci95"]
+            out.append(f"{name}.E = {values['E']:.4g} ± {entry['std']:.2g} (95 %: {low:.4g}-{high:.4g})")
+    return out
+
+
+def _outside_bounds(problem, record: dict) -> list[str]:
+    """Warnings for each E the force scaled outside its bounds: the force's unit or size
+    (E x length^2) is the usual cause (x100 put both of a box's E 10x past them, unsaid)."""
+    out = []
+    for material in problem.scene.materials:
+        bounds, E = material.E.bounds, record["materials"][material.name]["E"]
+        if bounds and not bounds[0] <= E <= bounds[1]:
+            out.append(f"{material.name}.E = {E:.4g} after the measured force's scale, outside its bounds "
+                       f"[{bounds[0]:g}, {bounds[1]:g}]: check the force's unit (E x length^2) and size")
+    return out

@@ -104,6 +104,30 @@ def test_a_measured_force_makes_every_E_absolute(tmp_path):
         print(region, E, (low, high), entry["parts"])
         assert abs(E / E_true - 1) < 0.03 and low < E_true < high, (region, E, low, high)
         assert 0.015 < entry["parts"]["force"] / E < 0.025, entry
+        # every part in E's units: together they are sigma (the ratio's parts had been left unscaled)
+        assert np.hypot.reduce(list(entry["parts"].values())) == pytest.approx(entry["std"], rel=1e-6), entry
+
+
+def test_a_force_against_the_motion_is_refused_and_one_out_of_scale_said(tmp_path, capsys):
+    """The reaction on the probe given for the force on the body (the sign flipped) made
+    every E negative with no word; a force 100x too big (its unit) scaled both E far past
+    their bounds unsaid. Now the first is one line and exit 2, the second a warning."""
+    from independent import inclusion_force
+
+    problem = inclusion(tmp_path / "case", RATIO, source_size=SOURCE_SIZE)["problem"]
+    force = inclusion_force(RATIO)
+    noise = 0.02 * float(np.linalg.norm(force))
+    every_E = "materials.matrix.E={estimate=true, initial=5.0, bounds=[0.5, 100.0]}"
+    args = ["estimate", str(problem), "--out", str(tmp_path / "flipped"), "--set", every_E,
+            "--set", f"boundary.measured_force.top={{value={(-force).tolist()}, noise={noise}}}"]
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "boundary.measured_force.top: the measured force" in err[0], err
+    assert "points against" in err[0] and "not its reaction" in err[0], err
+    result = estimate(tmp_path, "hundredfold", problem, every_E,
+                      f"boundary.measured_force.top={{value={(100 * force).tolist()}, noise={100 * noise}}}")
+    outside = [w for w in result["warnings"] if "after the measured force's scale, outside its bounds" in w]
+    assert any(w.startswith("matrix.E") for w in outside) and any(w.startswith("inclusion.E") for w in outside), outside
 
 
 @pytest.mark.parametrize("case, expected", [
