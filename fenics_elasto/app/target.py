@@ -72,14 +72,17 @@ class Target:
     with one vector array, or a vector image) or ``(points, vectors)`` arrays --
     with its noise std ``displacement_noise`` and correlation length
     ``displacement_correlation`` (one observation per cell of that size; default the
-    mesh's cell size). Paths are relative to the working directory.
+    mesh's cell size); ``displacement_frame = "itk"`` for a NIfTI field whose vectors
+    ITK, SimpleITK, ANTs or elastix wrote in ITK's LPS frame (files/displacements.py).
+    Paths are relative to the working directory.
     """
 
     def __init__(self, surfaces: SurfaceLike | Mapping[str, SurfaceLike] | None = None,
                  landmarks: LandmarksLike | None = None, noise: float | None = None,
                  landmark_weight: float | None = None, smooth: str = "auto",
                  landmark_noise: float | None = None, displacement: LandmarksLike | None = None,
-                 displacement_noise: float | None = None, displacement_correlation: float | None = None) -> None:
+                 displacement_noise: float | None = None, displacement_correlation: float | None = None,
+                 displacement_frame: str = "world") -> None:
         require(surfaces is not None or landmarks is not None or displacement is not None,
                 "Target: give surfaces, landmarks and/or a displacement field")
         if isinstance(surfaces, Mapping):
@@ -97,6 +100,9 @@ class Target:
             require(value is None or (isinstance(value, (int, float)) and np.isfinite(value) and value > 0),
                     f"Target.{key}: expected a number > 0 or None, got {value!r}")
         require(smooth in ("auto", "off"), f"Target.smooth: expected \"auto\" or \"off\", got {smooth!r}")
+        require(displacement_frame in ("world", "itk"),
+                f"Target.displacement_frame: expected \"world\" or \"itk\", got {displacement_frame!r}")
+        self.displacement_frame = displacement_frame
 
     @property
     def weights(self) -> dict[str, float | None]:
@@ -117,6 +123,7 @@ class Target:
             out["landmarks"] = label(self.landmarks)
         if self.displacement is not None:
             out["displacement"] = label(self.displacement)
+            out["displacement_frame"] = self.displacement_frame
         out.update({k: v for k, v in self.weights.items() if v is not None})
         return out
 
@@ -134,7 +141,7 @@ class Target:
             check_landmark_dim(self.landmarks, gdim, "Target.landmarks")
             data.landmarks = self.landmarks
         if isinstance(self.displacement, Path):
-            data.displacement = DisplacementField.read(self.displacement, gdim)
+            data.displacement = DisplacementField.read(self.displacement, gdim, self.displacement_frame)
         elif self.displacement is not None:
             check_landmark_dim(self.displacement, gdim, "Target.displacement")
             data.displacement = DisplacementField(*self.displacement, source="Target.displacement")

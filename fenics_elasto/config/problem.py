@@ -100,11 +100,12 @@ TARGET = Table({
     "displacement": Key(String("a displacement field file")),  # points with vectors, or a vector image
     "displacement_noise": Key(Number(gt=0)),
     "displacement_correlation": Key(Number(gt=0)),  # the field's correlation length (displacement_field.py)
+    "displacement_frame": Key(Choice("world", "itk"), "world"),  # its vectors' frame (files/displacements.py)
     "smooth": Key(Choice("auto", "off"), "auto"),
 }, exclusive=[("surface", "surfaces", "labels")],
    one_of=("surface", "surfaces", "labels", "landmarks", "displacement"),
    expected="a table {surface, surfaces or labels, landmarks, displacement, landmark_weight, landmark_noise, "
-            "displacement_noise, displacement_correlation, noise, smooth}")
+            "displacement_noise, displacement_correlation, displacement_frame, noise, smooth}")
 
 def _check_states(states: list, where: Where) -> list:
     names = [state["name"] for state in states]

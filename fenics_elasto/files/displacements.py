@@ -8,9 +8,16 @@ Two kinds of file:
   readers and world frame of label maps (images.py) -- with gdim values per voxel:
   the samples are the voxel centres, the vectors the voxel values in that frame.
 
+The vectors are read in the points' frame (``frame = "world"``). ITK, SimpleITK, ANTs
+and elastix write a NIfTI displacement field's vectors in ITK's LPS frame while its
+header's affine (as nibabel reads it) is RAS: ``frame = "itk"`` turns such vectors into
+the RAS world (x and y negated). A MetaImage or NRRD field is read in ITK's frame
+already, points and vectors alike; a point file's vectors are its points' own.
+
 Bad input (no file, no vector array or several, a scalar image, non-finite values) is
 one line (UserError).
 """
+
 
 from __future__ import annotations
 
@@ -22,15 +29,20 @@ from fenics_elasto.files.images import NIFTI, RAS_SPACES, _suffix, is_image
 from fenics_elasto.util.errors import UserError, require
 
 
-def read_displacement(path, gdim: int) -> tuple[np.ndarray, np.ndarray]:
-    """(points (n, gdim), vectors (n, gdim)) of the displacement field in ``path``."""
+def read_displacement(path, gdim: int, frame: str = "world") -> tuple[np.ndarray, np.ndarray]:
+    """(points (n, gdim), vectors (n, gdim)) of the displacement field in ``path``, its
+    vectors in ``frame`` (module docstring)."""
     path = Path(path)
     require(path.is_file(), f"{path}: no such displacement field file")
     suffix = _suffix(path)
     if is_image(path):
         require(gdim == 3, f"{path}: a displacement-field image needs a 3D scene")
         points, vectors = _image_field(path, suffix)
+        if frame == "itk" and suffix in NIFTI:  # ITK's LPS vectors into the header's RAS world
+            vectors[:, :2] *= -1.0
     else:
+        require(frame == "world", f"{path}: displacement_frame = \"itk\" is for NIfTI images written by ITK "
+                                  "(LPS vectors); a point file's vectors are read in its points' frame")
         points, vectors = _point_field(path, gdim)
     require(len(points) > 0, f"{path}: the displacement field has no points")
     require(np.isfinite(points).all() and np.isfinite(vectors).all(),

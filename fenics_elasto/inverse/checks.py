@@ -256,7 +256,11 @@ def _distance_warnings(misfit, spec: dict, distances: dict) -> list[str]:
     out = []
     surfaces = [s for term in misfit.terms for s in getattr(term, "surfaces", [])]
     for kind, distance in distances.items():
-        if spec.get("noise"):
+        hint = "check its units, frame and the set-up"
+        if kind == "field" and spec.get("displacement_noise"):
+            scale, what = NOISE_RATIO * spec["displacement_noise"], f"{NOISE_RATIO:g} x target.displacement_noise"
+            hint = FIELD_HINT
+        elif spec.get("noise"):
             scale, what = NOISE_RATIO * spec["noise"], f"{NOISE_RATIO:g} x target.noise"
         elif kind == "surface" and surfaces:
             scale, what = float(np.mean([s.mean_edge for s in surfaces])), "the target's mean edge length"
@@ -264,5 +268,11 @@ def _distance_warnings(misfit, spec: dict, distances: dict) -> list[str]:
             continue
         if distance["rms"] > scale:
             out.append(f"the final rms {kind} distance {distance['rms']:.3g} is above {what} ({scale:.3g}): "
-                       "the model does not fit the target; check its units, frame and the set-up")
+                       f"the model does not fit the target; {hint}")
     return out
+
+
+# A field read in the wrong frame fits at many times its noise (a NIfTI field from
+# SimpleITK read as RAS: 16x, and E at its bound): what to look at first.
+FIELD_HINT = ("are the field's vectors in the mesh's frame and unit? (ITK, SimpleITK, ANTs and elastix write a NIfTI "
+              "field's vectors in LPS: set [target] displacement_frame = \"itk\"); or is its noise stated too small?")

@@ -58,9 +58,10 @@ class DisplacementField:
     samples: Samples | None = None  # ... and where the model's mean over each cube is taken
 
     @classmethod
-    def read(cls, path: Path, gdim: int) -> DisplacementField:
-        """The field in a file (files/displacements.py), named by its path; an image is dense."""
-        return cls(*read_displacement(path, gdim), source=str(path), dense=is_image(path))
+    def read(cls, path: Path, gdim: int, frame: str = "world") -> DisplacementField:
+        """The field in a file (files/displacements.py; ``frame``: its vectors' frame),
+        named by its path; an image is dense."""
+        return cls(*read_displacement(path, gdim, frame), source=str(path), dense=is_image(path))
 
 
 def mean_cell_size(mesh) -> float:

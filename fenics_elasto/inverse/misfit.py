@@ -249,7 +249,8 @@ def read_target_field(scene, spec: dict) -> DisplacementField | None:
     """A target table's displacement: the field's samples as read (not yet sampled), or None."""
     if spec.get("displacement") is None:
         return None
-    return DisplacementField.read(scene.path.parent / spec["displacement"], scene.gdim)
+    return DisplacementField.read(scene.path.parent / spec["displacement"], scene.gdim,
+                                  spec.get("displacement_frame") or "world")
 
 
 def label_map_targets(scene, table: dict, where: str) -> dict[str, Surface]:

@@ -73,3 +73,49 @@ def test_a_label_map_is_not_a_displacement_field(tmp_path):
     lm.write_nifti(tmp_path / "seg.nii.gz", lm.label_map())
     with pytest.raises(UserError, match="not a displacement field: expected 3 values per voxel"):
         read_displacement(tmp_path / "seg.nii.gz", 3)
+
+
+LPS = np.diag([-1.0, -1.0, 1.0])  # ITK's physical frame from the RAS world, and back
+
+
+def test_a_nifti_field_written_by_itk_is_read_in_the_ras_world(tmp_path):
+    """SimpleITK (as ITK, ANTs, elastix) writes a NIfTI field's header in RAS but its
+    vectors in LPS. Read as they stand ("world") x and y come out negated -- the box of a
+    new user's test then gave E at its bound -- and with displacement_frame = "itk" they
+    are the world's vectors. A point file has no such split: "itk" is refused for it."""
+    import SimpleITK as sitk
+
+    points = voxel_centres()
+    lps_vectors = field_at(points) @ LPS
+    data = lps_vectors.reshape(*lm.SHAPE, 3).transpose(2, 1, 0, 3)  # ITK's array is [k, j, i, component]
+    image = sitk.GetImageFromArray(data.copy(), isVector=True)
+    image.SetSpacing(lm.SPACING.tolist())
+    image.SetOrigin((LPS @ lm.OFFSET).tolist())
+    image.SetDirection((LPS @ lm.rotation()).ravel().tolist())
+    sitk.WriteImage(image, str(tmp_path / "u.nii.gz"))
+    as_stored, vectors = read_displacement(tmp_path / "u.nii.gz", 3)
+    assert np.abs(as_stored - points).max() < 1e-4  # the header: RAS, as nibabel reads it
+    assert np.abs(vectors - lps_vectors).max() < 1e-5
+    read_points, vectors = read_displacement(tmp_path / "u.nii.gz", 3, frame="itk")
+    assert np.abs(read_points - points).max() < 1e-4 and np.abs(vectors - field_at(points)).max() < 1e-5
+    import pyvista as pv
+
+    cloud = pv.PolyData(points[:20])
+    cloud["u"] = field_at(points[:20])
+    cloud.save(tmp_path / "u.vtp")
+    with pytest.raises(UserError, match="displacement_frame = \"itk\" is for NIfTI images"):
+        read_displacement(tmp_path / "u.vtp", 3, frame="itk")
+
+
+def test_a_field_fitting_far_above_its_noise_says_where_to_look():
+    """The wrong frame's field fitted at 16x its stated noise with no word; now a warning
+    names the frame (and the unit, and the noise itself)."""
+    from types import SimpleNamespace
+
+    from fenics_elasto.inverse.checks import _distance_warnings
+
+    misfit = SimpleNamespace(terms=[])
+    spec = {"displacement_noise": 0.002}
+    (warning,) = _distance_warnings(misfit, spec, {"field": {"rms": 0.0327}})
+    assert "above 3 x target.displacement_noise (0.006)" in warning and 'displacement_frame = "itk"' in warning
+    assert _distance_warnings(misfit, spec, {"field": {"rms": 0.0027}}) == []  # the right frame: 1.35x its noise
