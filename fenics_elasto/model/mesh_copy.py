@@ -31,7 +31,7 @@ from dolfinx.io import XDMFFile
 
 from fenics_elasto.util.logs import log
 
-FORMAT = 1  # raised when what the copy holds changes
+FORMAT = 2  # raised when what the copy holds changes (2: the warnings of a mesh kept straight)
 INFO = "copy.json"  # written last: a folder without it is no copy
 
 

@@ -24,7 +24,7 @@ from fenics_elasto.config.toml import apply_overrides, read_toml
 from fenics_elasto.util.errors import UserError, on_root, require
 from fenics_elasto.mesh.gmsh_models import open_msh, physical_facets
 from fenics_elasto.util.logs import log
-from fenics_elasto.mesh.curving import curve_if_straight
+from fenics_elasto.mesh.curving import curve_if_straight, kept_straight_warnings
 from fenics_elasto.mesh.meshcheck import check_mesh
 from fenics_elasto.model.mesh_copy import read_copy, write_copy
 
@@ -252,7 +252,7 @@ def _open_checked(path: Path, facet_rows: dict, curve: bool) -> tuple[int, list[
     require(not unnamed, f"{path}: cell physical group(s) {unnamed} have no name; the problem file names "
                          "each region's material (gmsh: Physical Volume(\"name\") = ...)")
     check_mesh(gmsh, str(path), tdim)
-    note, warnings = curve_if_straight(gmsh, tdim, path) if curve else (None, [])
+    note, warnings = curve_if_straight(gmsh, tdim, path) if curve else (None, kept_straight_warnings(gmsh, tdim, path))
     facet_rows.update(physical_facets(gmsh, tdim))
     return tdim, sorted(facet_rows), note, warnings
 
