@@ -24,7 +24,8 @@ from typing import Protocol
 
 import numpy as np
 
-from fenics_elasto.util.errors import require
+from fenics_elasto.config.schema import suggestion
+from fenics_elasto.util.errors import UserError, require
 from fenics_elasto.util.logs import log
 from fenics_elasto.geometry.surface import Surface
 from fenics_elasto.files.images import read_label_image
@@ -330,8 +331,13 @@ def check_surface_groups(matched: list[str], given, where: str, noun: str = "sur
     """One target (a surface, or its labels) per matched group, and none for another group;
     ``where``: the table that gives them."""
     missing = [g for g in matched if g not in given]
-    require(not missing, f"{where}: no {noun} for matched group(s) {missing}")
     unknown = [g for g in given if g not in matched]
+    if missing and unknown:  # a misspelt group: name it, and what it may have meant
+        guesses = [f"{g!r} (did you mean {suggestion(g, missing)!r}?)" if suggestion(g, missing) else repr(g)
+                   for g in unknown]
+        raise UserError(f"{where}: no {noun} for matched group(s) {missing}; given for {', '.join(guesses)}, "
+                        f"which boundary.matched does not name")
+    require(not missing, f"{where}: no {noun} for matched group(s) {missing}")
     require(not unknown, f"{where}: {unknown} not in boundary.matched")
 
 

@@ -206,6 +206,9 @@ def test_target_from_a_label_map_of_the_deformed_state(kidney):
     radius = np.linalg.norm(surface.points - lm.world_centre(), axis=1)
     assert np.abs(radius - 1.1 * lm.RADIUS).max() < lm.SPACING.max()
     for labels, words in (({"tumour_surface": 7}, "label(s) [7] not in deformed.nii.gz"),
-                          ({"tumour_surface": 2, "outer": [1, 2]}, "['outer'] not in boundary.matched")):
+                          ({"tumour_surface": 2, "outer": [1, 2]}, "['outer'] not in boundary.matched"),
+                          # a misspelt group is named, with what it may have meant
+                          ({"tumor_surface": 2}, "no labels for matched group(s) ['tumour_surface']; given for "
+                                                 "'tumor_surface' (did you mean 'tumour_surface'?)")):
         with pytest.raises(UserError, match=re.escape(words)):
             read_target(load_scene(kidney, [("target", {"labels": {"image": "deformed.nii.gz", **labels}})]))
