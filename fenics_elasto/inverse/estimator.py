@@ -396,6 +396,9 @@ def _run(estimator: Estimator, warnings: list[str], extent_warnings: list[str], 
         state_forces = {name: problem.forward.reaction_forces(theta, u)
                         for name, u in zip(problem.states.names, best.evaluation.fields)}
         record["states"] = state_records(problem.states, best.evaluation.residual, estimator.options.state_noise)
+        for name, entry in record["states"].items():  # each state's own warnings, also in the whole run's list
+            prefix = f"state {name}: "
+            entry["warnings"] = [w[len(prefix):] for w in record.get("warnings", []) if w.startswith(prefix)]
     force_covariance = _force_covariance(estimator, theta, best, post) if not interrupted else {}
     record["wall_time_s"] = round(time.perf_counter() - start, 3)
     return EstimateResult(theta, list(problem.params.labels), best.evaluation.u, forces, best.evaluation, record,

@@ -282,6 +282,9 @@ def test_each_state_weighs_by_its_own_noise(tmp_path, two_cases):
                            f"{state('pressed', worse, ', noise=0.002')}]")
     assert [w for w in understated["warnings"] if "does not fit" in w][0].startswith("state pressed: the final rms"), \
         understated["warnings"]
+    own = understated["states"]["pressed"]["warnings"]  # each state's own list too (the contract's)
+    assert any(w.startswith("the final rms") and "does not fit" in w for w in own), own
+    assert not any("does not fit" in w for w in understated["states"]["stretched"]["warnings"]), understated["states"]
     import fenics_elasto as fe
 
     scene = fe.load_scene(problem, overrides={"boundary.matched": ["outline"]})  # the same from Python
