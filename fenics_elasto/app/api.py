@@ -123,15 +123,19 @@ def inverse_problem(scene: Scene, target: Target | Mapping[str, Target] | None =
     if isinstance(target, Mapping):  # several states of one body
         require(len(target) > 0 and all(isinstance(t, Target) for t in target.values()),
                 "estimate: several states are a mapping {name: Target, ...}")
-        states = [{"name": str(name), "target": t.spec()} for name, t in target.items()]
-        scene = for_command(scene, "estimate", [("states", states)])
+        states = [{"name": str(name), "target": t.spec(), **({"measured_force": t.measured_force} if t.measured_force else {})}
+                  for name, t in target.items()]
+        scene = with_force_reference(for_command(scene, "estimate", [("states", states)]))
         # each state's data with its own checked [target] numbers (noises, weights), as a file's
-        problem = InverseProblem(scene, target=[(str(name), replace(t.data(scene.gdim), spec=state["target"]))
+        problem = InverseProblem(scene, target=[(str(name), replace(t.data(scene.gdim, scene), spec=state["target"]))
                                                 for (name, t), state in zip(target.items(), scene.config["states"])])
     else:
         require(target is None or isinstance(target, Target), f"estimate: expected a Target, got {type(target).__name__}")
-        scene = with_force_reference(for_command(scene, "estimate", [] if target is None else [("target", target.spec())]))
-        problem = InverseProblem(scene, target=None if target is None else target.data(scene.gdim))
+        items = [] if target is None else [("target", target.spec())]
+        if target is not None and target.measured_force:
+            items.append(("boundary.measured_force", target.measured_force))
+        scene = with_force_reference(for_command(scene, "estimate", items))
+        problem = InverseProblem(scene, target=None if target is None else target.data(scene.gdim, scene))
     basis, held_out = _bases_of(problem, bases)
     field = len(problem.misfit.rows_of(FieldTerm))
     landmarks = len(problem.misfit.landmark_rows()) - field

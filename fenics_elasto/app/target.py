@@ -19,7 +19,7 @@ from fenics_elasto.files.readers import (check_landmark_dim, landmark_arrays, re
                                          surface_of)
 from fenics_elasto.geometry.surface import Surface
 from fenics_elasto.inverse.displacement_field import DisplacementField
-from fenics_elasto.inverse.misfit import TargetData, smooth_if_rough, target_surface
+from fenics_elasto.inverse.misfit import TargetData, label_map_targets, smooth_if_rough, target_surface
 from fenics_elasto.util.errors import require
 
 type SurfaceLike = str | os.PathLike[str] | Any | tuple[Any, Any]  # a file, a pyvista mesh, (points, cells)
@@ -56,6 +56,17 @@ def _file_or_pair(entry: object, name: str, expected: str) -> Path | tuple[np.nd
     return landmark_arrays(*entry, name=name)  # type: ignore[misc]
 
 
+def _labels_table(labels: object) -> dict[str, Any]:
+    """[target.labels] from a mapping: its image made absolute (a file of the caller's
+    working directory); the groups' labels are checked with the scene's schema."""
+    require(isinstance(labels, Mapping) and _is_path(labels.get("image")),
+            "Target.labels: expected {\"image\": label-map file, group: label or [labels], ...}, "
+            f"got {labels!r}")
+    assert isinstance(labels, Mapping)
+    groups = {str(g): [v] if isinstance(v, int) else v for g, v in labels.items() if g != "image"}  # as the schema has them
+    return {**groups, "image": str(Path(labels["image"]).resolve())}
+
+
 class Target:
     """What the estimate compares the deformed scene with.
 
@@ -74,7 +85,11 @@ class Target:
     ``displacement_correlation`` (one observation per cell of that size; default the
     mesh's cell size); ``displacement_frame = "itk"`` for a NIfTI field whose vectors
     ITK, SimpleITK, ANTs or elastix wrote in ITK's LPS frame (files/displacements.py).
-    Paths are relative to the working directory.
+    ``labels``: the deformed state's label map instead of surfaces, as [target.labels]:
+    ``{"image": path, group: label or [labels], ...}``. ``measured_force``: the total
+    forces measured through loaded groups while this target was observed, as
+    [boundary.measured_force]: ``{group: {"value": [...], "noise": std}}`` (with several
+    states, that state's). Paths are relative to the working directory.
     """
 
     def __init__(self, surfaces: SurfaceLike | Mapping[str, SurfaceLike] | None = None,
@@ -82,9 +97,16 @@ class Target:
                  landmark_weight: float | None = None, smooth: str = "auto",
                  landmark_noise: float | None = None, displacement: LandmarksLike | None = None,
                  displacement_noise: float | None = None, displacement_correlation: float | None = None,
-                 displacement_frame: str = "world") -> None:
-        require(surfaces is not None or landmarks is not None or displacement is not None,
-                "Target: give surfaces, landmarks and/or a displacement field")
+                 displacement_frame: str = "world", labels: Mapping[str, Any] | None = None,
+                 measured_force: Mapping[str, Mapping[str, Any]] | None = None) -> None:
+        require(surfaces is not None or landmarks is not None or displacement is not None or labels is not None,
+                "Target: give surfaces, labels, landmarks and/or a displacement field")
+        require(surfaces is None or labels is None, "Target: give surfaces or labels, not both")
+        self.labels = None if labels is None else _labels_table(labels)
+        require(measured_force is None or isinstance(measured_force, Mapping),
+                "Target.measured_force: expected {group: {\"value\": [...], \"noise\": std}}, "
+                f"got {type(measured_force).__name__}")
+        self.measured_force = None if measured_force is None else {str(g): dict(f) for g, f in measured_force.items()}
         if isinstance(surfaces, Mapping):
             require(len(surfaces) > 0, "Target.surfaces: an empty mapping; give {group: surface, ...}")
             self.surfaces: object = {str(g): _check_surface(s, f"Target.surfaces[{g!r}]") for g, s in surfaces.items()}
@@ -121,15 +143,21 @@ class Target:
             out["surface"] = label(self.surfaces)
         if self.landmarks is not None:
             out["landmarks"] = label(self.landmarks)
+        if self.labels is not None:
+            out["labels"] = self.labels
         if self.displacement is not None:
             out["displacement"] = label(self.displacement)
             out["displacement_frame"] = self.displacement_frame
         out.update({k: v for k, v in self.weights.items() if v is not None})
         return out
 
-    def data(self, gdim: int) -> TargetData:
-        """The target read and checked for a ``gdim``-dimensional scene."""
-        if isinstance(self.surfaces, dict):
+    def data(self, gdim: int, scene=None) -> TargetData:
+        """The target read and checked for a ``gdim``-dimensional scene (``scene``: for
+        label maps, whose surfaces are cut for its matched groups)."""
+        if self.labels is not None:
+            require(scene is not None, "Target.labels: read for a scene (estimate does)")
+            data = TargetData(surfaces=label_map_targets(scene, self.labels, "Target.labels"), source="Target")
+        elif isinstance(self.surfaces, dict):
             surfaces = {g: self._surface(s, gdim, f"Target.surfaces[{g!r}]") for g, s in self.surfaces.items()}
             data = TargetData(surfaces=surfaces, source="Target")
         else:

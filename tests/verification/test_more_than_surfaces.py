@@ -367,3 +367,13 @@ def test_a_force_measured_in_one_state_scales_every_state(tmp_path, two_cases):
     stretched = np.loadtxt(tmp_path / "forced" / "forces_stretched.csv", delimiter=",", skiprows=1)[:, 2:].sum(axis=0)
     truth = inclusion_force(RATIO)
     assert np.linalg.norm(stretched - truth) < 0.03 * np.linalg.norm(truth), (stretched, truth)
+    import fenics_elasto as fe  # the same from Python: the force with the state's Target
+
+    scene = fe.load_scene(problem, overrides={"boundary.matched": ["outline"], "materials.matrix.E": {
+        "estimate": True, "initial": 5.0, "bounds": [0.5, 100.0]}})
+    api = fe.estimate(scene, {"stretched": fe.Target(surfaces={"outline": case_a["outline"]}),
+                              "pressed": fe.Target(surfaces={"outline": case_b["outline"]},
+                                                   measured_force={"top": {"value": force.tolist(), "noise": noise}})},
+                      bases=bases)
+    for region in ("matrix", "inclusion"):
+        assert api.values[f"{region}.E"] == pytest.approx(result["materials"][region]["E"], rel=1e-6), api.values

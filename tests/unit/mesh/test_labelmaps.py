@@ -205,6 +205,12 @@ def test_target_from_a_label_map_of_the_deformed_state(kidney):
     surface = read_target(load_scene(kidney, [("target", target)])).surfaces["tumour_surface"]
     radius = np.linalg.norm(surface.points - lm.world_centre(), axis=1)
     assert np.abs(radius - 1.1 * lm.RADIUS).max() < lm.SPACING.max()
+    import fenics_elasto as fe  # the same from Python
+
+    scene = load_scene(kidney, [("target", target)])
+    labels = fe.Target(labels={"image": kidney.parent / "deformed.nii.gz", "tumour_surface": 2})
+    assert np.array_equal(labels.data(3, scene).surfaces["tumour_surface"].points, surface.points)
+    assert labels.spec()["labels"]["image"] == str((kidney.parent / "deformed.nii.gz").resolve())
     for labels, words in (({"tumour_surface": 7}, "label(s) [7] not in deformed.nii.gz"),
                           ({"tumour_surface": 2, "outer": [1, 2]}, "['outer'] not in boundary.matched"),
                           # a misspelt group is named, with what it may have meant
