@@ -31,7 +31,7 @@ from fenics_elasto.model.scene import Scene  # noqa: E402
 from fenics_elasto.inverse.reduction.bases import Bases  # noqa: E402
 from fenics_elasto.app.target import Target  # noqa: E402
 from fenics_elasto.app.outcomes import Estimate, Simulation  # noqa: E402
-from fenics_elasto.app.api import build_scene, estimate, load_scene, render, simulate, train  # noqa: E402
+from fenics_elasto.app.api import build_scene, estimate, load_scene, render, scene_from_spec, simulate, train  # noqa: E402
 
 try:
     __version__ = version("fenics_elasto")
@@ -39,4 +39,4 @@ except PackageNotFoundError:  # run from a source tree that was never installed
     __version__ = "0+unknown"
 
 __all__ = ["Bases", "Estimate", "Scene", "Simulation", "Target", "UserError", "__version__", "build_scene", "estimate",
-           "load_scene", "render", "simulate", "train"]
+           "load_scene", "render", "scene_from_spec", "simulate", "train"]

@@ -56,6 +56,21 @@ def build_scene(name: str, out: PathLike, size: float | None = None, seed: int |
         return on_root(MPI.COMM_WORLD, work)
 
 
+def scene_from_spec(spec: PathLike, out: PathLike, size: float | None = None) -> Path:
+    """A scene from organ surface files or a label map (the ``scene`` command: a spec
+    TOML naming the body, its regions and cavities; docs/scenes.md), meshed into the
+    folder ``out``; returns its problem.toml path. ``size``: the element size, instead
+    of the spec's. Collective (gmsh runs on rank 0)."""
+    from mpi4py import MPI
+
+    from fenics_elasto.files.outputs import prepare_folder
+    from fenics_elasto.mesh.anatomy import build_scene_from_spec
+    from fenics_elasto.util.errors import on_root
+
+    with prepare_folder(Path(out)):
+        return on_root(MPI.COMM_WORLD, lambda: build_scene_from_spec(Path(spec), Path(out), size))
+
+
 def _override_items(overrides: Mapping[str, Any] | None) -> list[tuple[str, Any]]:
     if overrides is None:
         return []
@@ -204,4 +219,4 @@ def render(what: Simulation | Estimate | PathLike, off_screen: bool = True, titl
 
 
 __all__ = ["Bases", "Estimate", "Scene", "Simulation", "Target", "UserError", "build_scene", "estimate", "load_scene",
-           "render", "simulate", "train"]
+           "render", "scene_from_spec", "simulate", "train"]

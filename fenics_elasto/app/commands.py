@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from fenics_elasto.util.errors import UserError, on_root, require
+from fenics_elasto.util.errors import UserError, require
 from fenics_elasto.util.logs import log
 from fenics_elasto.files.outputs import prepare_file, prepare_folder
 from fenics_elasto.app import api
@@ -24,12 +24,7 @@ def run_mesh(name: str, out: Path, size=None, seed=None, atlas_mesh: Path | None
 
 def run_scene(spec: Path, out: Path, size=None) -> Path:
     """The ``scene`` command: a scene from organ surface files (anatomy.py) into ``out``."""
-    from mpi4py import MPI
-
-    from fenics_elasto.mesh.anatomy import build_scene_from_spec
-
-    with prepare_folder(out):
-        return on_root(MPI.COMM_WORLD, lambda: build_scene_from_spec(spec, out, size))
+    return api.scene_from_spec(spec, out, size)
 
 
 def run_simulate(problem_path: Path, out: Path, overrides=()) -> dict:

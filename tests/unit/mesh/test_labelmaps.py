@@ -16,7 +16,6 @@ import labelmaps as lm
 from fenics_elasto.files.images import read_label_image
 from fenics_elasto.geometry.label_surfaces import label_surface
 from fenics_elasto.config.scene_spec import read_scene_spec
-from fenics_elasto.mesh.anatomy import build_scene_from_spec
 from fenics_elasto.mesh.labelmaps import label_shells
 from fenics_elasto.mesh.repair import enclosed_volume
 from fenics_elasto.model.scene import load_scene
@@ -37,8 +36,14 @@ def scene_from(folder: Path, image: str, labels: np.ndarray, spec: str = SPEC) -
 
 @pytest.fixture(scope="module")
 def kidney(tmp_path_factory):
+    """A scene from a label map, through the Python API's door (fe.scene_from_spec: the
+    ``scene`` command's)."""
+    import fenics_elasto as fe
+
     folder = tmp_path_factory.mktemp("kidney")
-    return build_scene_from_spec(scene_from(folder, "seg.nii.gz", lm.label_map()), folder / "out")
+    path = fe.scene_from_spec(scene_from(folder, "seg.nii.gz", lm.label_map()), folder / "out")
+    assert path == folder / "out" / "problem.toml"
+    return path
 
 
 def test_region_volumes_match_the_analytic_shapes(kidney):
