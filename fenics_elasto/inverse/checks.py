@@ -13,7 +13,7 @@ from scipy.spatial import cKDTree
 from fenics_elasto.util.errors import UserError, require
 from fenics_elasto.inverse.displacement_field import correlated_over
 from fenics_elasto.inverse.inner import InnerResult
-from fenics_elasto.inverse.misfit import FieldTerm
+from fenics_elasto.inverse.misfit import FieldTerm, PointTerm
 from fenics_elasto.geometry.surface import Surface
 from fenics_elasto.geometry.targets import SurfaceTerm
 from fenics_elasto.inverse.objective import InverseProblem
@@ -32,6 +32,11 @@ def check_overlap(problem: InverseProblem) -> float:
     observed = problem.misfit.weights > 0
     size = float(np.linalg.norm(np.ptp(y, axis=0)))
     distance = float(np.sqrt(np.mean(np.sum(residual[observed] ** 2, axis=1)))) if observed.any() else 0.0
+    for kind, key in ((FieldTerm, "displacement"), (PointTerm, "landmarks")):  # each blamed on its own file
+        rows = np.setdiff1d(problem.misfit.rows_of(kind), problem.misfit.rows_of(FieldTerm) if kind is PointTerm else [])
+        moved = float(np.sqrt(np.mean(np.sum(residual[rows] ** 2, axis=1)))) if len(rows) else 0.0
+        require(moved < OVERLAP * size, f"{_point_files(problem, key)}: moves the body by {moved:.3g} rms, against its "
+                                        f"size {size:.3g}; is it in the same units and frame as the mesh?")
     targets = sorted(_group_targets(problem), key=lambda t: -t.rms)
     require(distance < OVERLAP * size,
             f"{targets[0].where if targets else problem.scene.path}: the target does not overlap the matched surface "
@@ -103,6 +108,13 @@ def _check_covered(t: _GroupTarget) -> None:
         raise UserError(f"{t.where}: covers only part of {t.group}: {100 * beyond.mean():.0f} % of its nodes lie "
                         f"beyond the target's edge, up to {t.distance[beyond].max():.3g} from it (the rest within "
                         f"{motion:.3g}); give the group's whole surface, or match the part it covers as a group of its own")
+
+
+def _point_files(problem: InverseProblem, key: str) -> str:
+    """The [target] ``key`` files (displacement, landmarks) of every state that has one."""
+    files = [f"{f'[[states]] {name}: target' if name else '[target]'} {key} ({spec[key]})"
+             for name, spec in zip(problem.states.names, problem.states.specs) if spec.get(key)]
+    return ", ".join(files) or f"{problem.scene.path}: the {key}"
 
 
 def _target_file(spec: dict, group: str, state: str) -> str:

@@ -134,6 +134,7 @@ def test_a_force_against_the_motion_is_refused_and_one_out_of_scale_said(tmp_pat
     ("force_not_loaded", "not in boundary.loaded"),
     ("field_outside", "lie outside the body"),
     ("field_elsewhere", "another frame or unit"),
+    ("field_vectors_in_mm", "field.vtp): moves the body by"),  # was blamed on the outline's file
     ("state_unknown_group", "['bladder'] not in boundary.matched"),
     ("state_twice", "is given twice"),
     ("state_noise_partial", "stated for some states but not for ['b']"),
@@ -145,7 +146,8 @@ def test_bad_extra_data_is_one_line(tmp_path, capsys, case, expected):
         points = np.concatenate([points, [[5.5, 0.0]]])  # one sample beyond the block's right side
     if case == "field_elsewhere":
         points = points * 10.0 + 100.0  # centimetres read as millimetres, shifted: no overlap
-    field = write_field(tmp_path / "field.vtp", points, np.zeros_like(points))
+    vectors = 1000.0 * inclusion_displacement(points, RATIO) if case == "field_vectors_in_mm" else np.zeros_like(points)
+    field = write_field(tmp_path / "field.vtp", points, vectors)
     outline = f"{{surfaces={{outline='{problem.parent / 'target_outline.vtp'}'"
     sets = {"force_not_loaded": ["boundary.measured_force.bottom={value=[0.0, 1.0], noise=0.1}"],
             "state_unknown_group": ["boundary.matched=['outline']",
@@ -157,7 +159,8 @@ def test_bad_extra_data_is_one_line(tmp_path, capsys, case, expected):
             "state_twice": ["boundary.matched=['outline']",
                             f"states=[{{name='a', target={outline}}}}}}}, {{name='a', target={outline}}}}}}}]"],
             "field_outside": [f"target={{displacement='{field}'}}"],
-            "field_elsewhere": [f"target={{displacement='{field}'}}"]}[case]
+            "field_elsewhere": [f"target={{displacement='{field}'}}"],
+            "field_vectors_in_mm": [f"target.displacement='{field}'"]}[case]
     args = ["estimate", str(problem), "--out", str(tmp_path / "out")]
     for s in sets:
         args += ["--set", s]
