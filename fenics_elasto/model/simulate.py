@@ -74,6 +74,7 @@ def simulate(scene: Scene, model: ElasticModel | None = None) -> Simulation:
     result = {
         "materials": {m.name: {"E": m.E.value, "nu": m.nu.value} for m in scene.materials},
         "max_displacement": scene.comm.allreduce(float(magnitude.max(initial=0.0)), op=MPI.MAX),
+        "group_forces": group_forces(model, model.stiffness.coefficients(E, nu), u),
         "factorizations": model.factorizations,
         "solver": model.stats.as_dict(),
         "dofs": model.dofs.num_dofs,
@@ -81,6 +82,23 @@ def simulate(scene: Scene, model: ElasticModel | None = None) -> Simulation:
         "wall_time_s": round(time.perf_counter() - start, 3),
     }
     return Simulation(model, u, result)
+
+
+def group_forces(model: ElasticModel, c, u: fem.Function) -> dict[str, list[float]]:
+    """The total force applied to the body through each displaced, loaded or pressed
+    group: K u summed over its nodes, those on a fixed group left out (there K u holds the
+    clamp's reaction too) -- what a load cell measures, and what an estimate's
+    [boundary.measured_force] compares with (measured_force.group_forces)."""
+    scene, dofs = model.scene, model.dofs
+    Ku = dofs.function("Ku")
+    model.stiffness.apply(c, u.x.petsc_vec, Ku.x.petsc_vec)
+    values = Ku.x.array.reshape(-1, dofs.bs)
+    fixed = dofs.boundary_blocks(scene.fixed) if scene.fixed else np.zeros(0, np.int32)
+    out = {}
+    for group in dict.fromkeys([*scene.displacement, *scene.load, *scene.pressure]):
+        blocks = np.setdiff1d(dofs.boundary_blocks([group]), fixed)
+        out[group] = scene.comm.allreduce(values[blocks].sum(axis=0), op=MPI.SUM).tolist()
+    return out
 
 
 def write_landmarks_for(scene: Scene, u: fem.Function, path: Path, noise: float = 0.0, seed: int = 0) -> Path:

@@ -43,3 +43,19 @@ def test_the_scale_leans_on_the_parts_of_the_force_the_motion_determines():
     print(plain, weighed)
     assert plain.value > 2.05 and plain.chi2 > 20
     assert abs(weighed.value - 2.0) < 0.01 and weighed.chi2 < 3 and weighed.std > plain.std
+
+
+def test_simulate_reports_the_force_an_estimate_measures(tmp_path):
+    """simulate's result holds each driven group's total force (K u over its nodes, the
+    clamped ones left out), on the estimate's own definition: the letter's top force fed
+    back as a measured force scales E = 10 (fixed) by 1 to 1e-4."""
+    import fenics_elasto as fe
+
+    scene = fe.load_scene(fe.build_scene("letter-a", tmp_path / "src"))
+    sim = fe.simulate(scene)
+    force = sim.record["group_forces"]["top"]
+    assert list(sim.record["group_forces"]) == ["top"] and np.linalg.norm(force) > 0
+    target = fe.Target(surfaces={"outline": sim.surface("outline")},
+                       measured_force={"top": {"value": force, "noise": 0.01 * float(np.linalg.norm(force))}})
+    result = fe.estimate(scene, target)
+    assert result.record["measured_force"]["scale"] == pytest.approx(1.0, abs=1e-4), result.record["measured_force"]
