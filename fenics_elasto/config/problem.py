@@ -100,7 +100,7 @@ TARGET = Table({
     "displacement": Key(String("a displacement field file")),  # points with vectors, or a vector image
     "displacement_noise": Key(Number(gt=0)),
     "displacement_correlation": Key(Number(gt=0)),  # the field's correlation length (displacement_field.py)
-    "displacement_frame": Key(Choice("world", "itk"), "world"),  # its vectors' frame (files/displacements.py)
+    "displacement_frame": Key(Choice("world", "itk")),  # its vectors' frame, "world" if not given (files/displacements.py)
     "smooth": Key(Choice("auto", "off"), "auto"),
 }, exclusive=[("surface", "surfaces", "labels")],
    one_of=("surface", "surfaces", "labels", "landmarks", "displacement"),

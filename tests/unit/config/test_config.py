@@ -473,7 +473,7 @@ def test_target_forms():
     assert landmarks_only["target"] == {"surface": None, "surfaces": None, "landmarks": "l.csv",
                                         "landmark_weight": None, "landmark_noise": None, "labels": None, "noise": None,
                                         "smooth": "auto", "displacement": None, "displacement_noise": None,
-                                        "displacement_correlation": None}
+                                        "displacement_correlation": None, "displacement_frame": None}
     per_group, _ = problem({"target": {"surface": DROP, "surfaces": {"outline": "o.vtp"}, "landmarks": "l.csv",
                                        "landmark_weight": 2, "noise": 0.05}})
     assert per_group["target"]["surfaces"] == {"outline": "o.vtp"} and per_group["target"]["landmark_weight"] == 2.0
