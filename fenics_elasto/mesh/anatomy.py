@@ -526,6 +526,21 @@ def _sizes(spec: dict, body: Shell, size: float | None) -> tuple[float, float]:
     return float(size), float(organ_size)
 
 
+def _span(shell) -> str:
+    """The shell's bounding box, for a message: [x0, x1] x [y0, y1] x [z0, z1]."""
+    low, high = shell.points.min(axis=0), shell.points.max(axis=0)
+    return " x ".join(f"[{a:.4g}, {b:.4g}]" for a, b in zip(low, high))
+
+
+def _frame_hint(spec: dict) -> str:
+    """Where a label map is not NIfTI: its world frame is ITK's (LPS), x and y negated
+    beside a NIfTI copy's (RAS), which a patch's point may have been read from."""
+    image = (spec.get("labels") or {}).get("image")
+    if image is None or str(image).lower().endswith((".nii", ".nii.gz")):
+        return ""
+    return "; a MetaImage or NRRD label map is in ITK's LPS frame, x and y negated beside a NIfTI copy's RAS"
+
+
 def build_scene_from_spec(spec_path, out, size: float | None = None) -> Path:
     """Read the spec and its surface files, repair and check them, and write
     ``out/scene.msh`` and ``out/problem.toml``; returns the problem.toml path."""
@@ -550,7 +565,8 @@ def build_scene_from_spec(spec_path, out, size: float | None = None) -> Path:
         assert sides is not None  # cut_by_planes marks them
         for p, patch in enumerate(patches):
             require((sides >> p & 1).any(),
-                    f"{spec_path}: patches.{patch.name}: no part of the outer boundary has (c - point) . normal > 0")
+                    f"{spec_path}: patches.{patch.name}: no part of the outer boundary has (c - point) . normal > 0 "
+                    f"(the body spans {_span(body)}{_frame_hint(spec)})")
     units = spec["units"]
     _note_coarse_organs(organs, organ_size, units)
     log.info(f"meshing: element size {size:.3g} {units} in the body, {organ_size:.3g} {units} at the organs")

@@ -175,6 +175,8 @@ def _leaking() -> np.ndarray:
     ("leak", ["regions.tumour (label 2) leaks out of the body"]),
     ("unreadable", ["cannot read it as an image"]),
     ("border", ["image border"]),
+    # a patch beside the body of a MetaImage map: the body's span, and the frame a NIfTI copy's point would be in
+    ("patch_off_mha", ["patches.far: no part of the outer boundary", "the body spans [", "ITK's LPS frame"]),
 ])
 def test_bad_label_maps_are_one_line(tmp_path, capsys, case, words):
     from fenics_elasto.app.cli import main
@@ -188,7 +190,10 @@ def test_bad_label_maps_are_one_line(tmp_path, capsys, case, words):
         labels = _leaking()
     elif case == "border":
         labels[0, 10:12, 10:12] = 1
-    path = scene_from(tmp_path, "seg.nii.gz", labels, spec)
+    elif case == "patch_off_mha":
+        far = {"far": (lm.world_centre() + [1000.0, 0.0, 0.0], [1.0, 0.0, 0.0])}
+        spec = lm.kidney_spec("seg.mha", patches=far).replace("{", "{{").replace("}", "}}")  # scene_from formats it
+    path = scene_from(tmp_path, "seg.mha" if case == "patch_off_mha" else "seg.nii.gz", labels, spec)
     if case == "unreadable":
         (tmp_path / "seg.nii.gz").write_bytes(b"not an image at all")
     assert main(["scene", str(path), "--out", str(tmp_path / "out")]) == 2
