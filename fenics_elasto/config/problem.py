@@ -12,11 +12,19 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 
 from fenics_elasto.config.schema import (REQUIRED, ArrayOf, Boolean, Choice, Elastic, Integer, Key, LabelTargets, Matrix,
-                                         Named, Names, Number, NumberOr, String, Table, Vector, Where, show)
+                                         Named, Names, Number, NumberOr, String, Table, Vector, Where, show,
+                                         suggestion)
 from fenics_elasto.config.toml import apply_overrides, read_toml
 
 COMMANDS = ("simulate", "estimate", "train")
 SIMULATE_ONLY = ("displacement", "load", "pressure")  # [boundary] tables only `simulate` uses
+
+def not_loaded(group: str, loaded: list[str]) -> str:
+    """Why a measured force on ``group`` is refused, with the loaded group it may have meant."""
+    guess = suggestion(group, loaded)
+    return ("a measured force acts through a loaded group, and this one is not in boundary.loaded"
+            + (f" (did you mean {show(guess)}?)" if guess else f" ({', '.join(map(show, loaded)) or 'none'})"))
+
 
 def _check_boundary(boundary: dict, where: Where) -> dict:
     both = [g for g in boundary["fixed"] if g in boundary["loaded"]]
@@ -24,8 +32,7 @@ def _check_boundary(boundary: dict, where: Where) -> dict:
         where.fail(f"group {show(both[0])} is both fixed and loaded; a facet is either clamped or loaded")
     unloaded = [g for g in boundary["measured_force"] if g not in boundary["loaded"]]
     if unloaded:
-        where.at("measured_force").at(unloaded[0]).fail(
-            "a measured force acts through a loaded group, and this one is not in boundary.loaded")
+        where.at("measured_force").at(unloaded[0]).fail(not_loaded(unloaded[0], boundary["loaded"]))
     _check_sizes(boundary, None, where)
     return boundary
 
@@ -225,7 +232,7 @@ def _command_checks(config: dict, command: str, where: Where) -> list[str]:
             unloaded = [g for g in state["measured_force"] if g not in boundary["loaded"]]
             if unloaded:
                 where.at("states").at(i).at("measured_force").at(unloaded[0]).fail(
-                    "a measured force acts through a loaded group, and this one is not in boundary.loaded")
+                    not_loaded(unloaded[0], boundary["loaded"]))
         if config["reduction"] is not None and config["optimizer"]["inner"] not in ("auto", "gauss-newton"):
             where.at("optimizer").at("inner").fail(
                 f'reduced bases need "gauss-newton" (or "auto"), got {show(config["optimizer"]["inner"])}')

@@ -175,7 +175,10 @@ BAD_PROBLEMS = {
     "state's force on a group not loaded": ({"target": DROP, "states": [
         {"name": "a", "target": {"surface": "a.vtp"}, "measured_force": {"feet": {"value": [0.0, 1.0], "noise": 0.1}}},
         {"name": "b", "target": {"surface": "b.vtp"}}]}, (), "estimate", "problem.toml: states[0].measured_force.feet:",
-        ["not in boundary.loaded"]),
+        ["not in boundary.loaded", '("top")']),  # the loaded groups listed
+    "measured force on a misspelt group": ({"boundary": {"measured_force": {"topp": {"value": [0.0, 1.0], "noise": 0.1}}}},
+                                           (), "estimate", "problem.toml: boundary.measured_force.topp:",
+                                           ['not in boundary.loaded (did you mean "top"?)']),
     "state's key typo": ({"target": DROP, "states": [{"name": "a", "target": {"surface": "a.vtp"}},
                                                       {"name": "b", "target": {"surface": "b.vtp"}, "measured_forc": {}}]},
                          (), "estimate", "problem.toml: [states[1].measured_forc]:", ["did you mean [states[1].measured_force]?"]),
