@@ -127,16 +127,24 @@ def kept_straight_warnings(gmsh, tdim: int, path) -> list[str]:
     sigma. Measured on a new user's plain-gmsh box with a ball (E 4, truth by
     scikit-fem): kept straight, fiducials gave 3.882 (3.778-3.989) and a field 4.165
     (4.056-4.277), both intervals missing; curved on load 4.052 and 3.972, holding."""
-    if tdim != 3 or not straight_sided(gmsh, tdim):
-        return []
-    position = node_positions(gmsh)
-    surface = mesh_surfaces(gmsh, tdim, position)
-    edges, _ = surface_edges(surface, tdim)
-    if _bend(surface, edges, _edge_angles(surface, edges), tdim) < BENT_ANGLE:
+    if tdim != 3 or not straight_sided(gmsh, tdim) or _bent_surface(gmsh, tdim) is None:
         return []
     return [f"{Path(path).name}: straight-sided (order 1) with curved surfaces, kept straight (curve = \"off\", or P1 "
             "fields): the facets' error in the shape is in no part of sigma (the mesh part solves again on the same "
             "facets) and can move E by a few % outside its interval; curve = \"auto\" with P2 fields curves it"]
+
+
+def _bent_surface(gmsh, tdim: int):
+    """(node positions, the mesh's surface, its edges, their patches, the facets' angles
+    at them) of the mesh in the open gmsh model; None where every surface is flat (its
+    facets meet at under BENT_ANGLE on average): nothing to curve."""
+    position = node_positions(gmsh)
+    surface = mesh_surfaces(gmsh, tdim, position)
+    edges, patches = surface_edges(surface, tdim)
+    angles = _edge_angles(surface, edges)
+    if _bend(surface, edges, angles, tdim) < BENT_ANGLE:
+        return None
+    return position, surface, edges, patches, angles
 
 
 def straight_sided(gmsh, tdim: int) -> bool:
@@ -148,12 +156,10 @@ def straight_sided(gmsh, tdim: int) -> bool:
 def curve_mesh(gmsh, tdim: int) -> Curving | None:
     """Curve a straight-sided mesh whose surfaces bend (module docstring), in the open
     gmsh model; None (nothing done) where every surface is flat."""
-    position = node_positions(gmsh)
-    surface = mesh_surfaces(gmsh, tdim, position)
-    edges, patches = surface_edges(surface, tdim)
-    angles = _edge_angles(surface, edges)
-    if _bend(surface, edges, angles, tdim) < BENT_ANGLE:
+    bent = _bent_surface(gmsh, tdim)
+    if bent is None:
         return None
+    position, surface, edges, patches, angles = bent
     targets = midpoint_targets(surface, edges, patches, angles, position, tdim)
     move = targets - (position[edges.ends[:, 0]] + position[edges.ends[:, 1]]) / 2
     size = np.linalg.norm(move, axis=1)
