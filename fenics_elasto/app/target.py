@@ -57,14 +57,17 @@ def _file_or_pair(entry: object, name: str, expected: str) -> Path | tuple[np.nd
 
 
 def _labels_table(labels: object) -> dict[str, Any]:
-    """[target.labels] from a mapping: its image made absolute (a file of the caller's
-    working directory); the groups' labels are checked with the scene's schema."""
+    """[target.labels] from a mapping, checked and normalised by the problem file's own
+    schema (config.schema.LabelTargets); its image made absolute (a file of the caller's
+    working directory)."""
+    from fenics_elasto.config.schema import LabelTargets, Where
+
     require(isinstance(labels, Mapping) and _is_path(labels.get("image")),
             "Target.labels: expected {\"image\": label-map file, group: label or [labels], ...}, "
             f"got {labels!r}")
     assert isinstance(labels, Mapping)
-    groups = {str(g): [v] if isinstance(v, int) else v for g, v in labels.items() if g != "image"}  # as the schema has them
-    return {**groups, "image": str(Path(labels["image"]).resolve())}
+    table = {**{str(g): v for g, v in labels.items()}, "image": str(Path(labels["image"]).resolve())}
+    return LabelTargets().check(table, Where("Target.labels"))
 
 
 class Target:

@@ -112,14 +112,19 @@ def _check_covered(t: _GroupTarget) -> None:
 
 def _point_files(problem: InverseProblem, key: str) -> str:
     """The [target] ``key`` files (displacement, landmarks) of every state that has one."""
-    files = [f"{f'[[states]] {name}: target' if name else '[target]'} {key} ({spec[key]})"
+    files = [f"{_target_table(name)} {key} ({spec[key]})"
              for name, spec in zip(problem.states.names, problem.states.specs) if spec.get(key)]
     return ", ".join(files) or f"{problem.scene.path}: the {key}"
 
 
+def _target_table(state: str) -> str:
+    """The table a target is given in: a state's, or [target]."""
+    return f"[[states]] {state}: target" if state else "[target]"
+
+
 def _target_file(spec: dict, group: str, state: str) -> str:
     """Where a group's target came from, for the error line."""
-    where = f"[[states]] {state}: target" if state else "[target]"
+    where = _target_table(state)
     for key in ("surfaces", "labels"):
         table = spec.get(key) or {}
         if group in table:

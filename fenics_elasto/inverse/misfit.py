@@ -333,8 +333,8 @@ def check_surface_groups(matched: list[str], given, where: str, noun: str = "sur
     missing = [g for g in matched if g not in given]
     unknown = [g for g in given if g not in matched]
     if missing and unknown:  # a misspelt group: name it, and what it may have meant
-        guesses = [f"{g!r} (did you mean {suggestion(g, missing)!r}?)" if suggestion(g, missing) else repr(g)
-                   for g in unknown]
+        guesses = [f"{g!r} (did you mean {guess!r}?)" if guess else repr(g)
+                   for g, guess in ((g, suggestion(g, missing)) for g in unknown)]
         raise UserError(f"{where}: no {noun} for matched group(s) {missing}; given for {', '.join(guesses)}, "
                         f"which boundary.matched does not name")
     require(not missing, f"{where}: no {noun} for matched group(s) {missing}")
