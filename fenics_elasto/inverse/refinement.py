@@ -12,9 +12,9 @@ from __future__ import annotations
 import time
 
 import numpy as np
-from mpi4py import MPI
 
 from fenics_elasto.inverse.surrogate import MaterialSurrogate
+from fenics_elasto.model.block_cg import over_budget
 
 # refine: the relative equation residual that stands in for a solve. The answer's E comes
 # from the surrogate's optimum either way; at 1e-6 instead of 1e-8 sigma moved by 3e-8
@@ -46,7 +46,7 @@ def refine(surrogate: MaterialSurrogate, theta, factors, q=None, tol: float = RE
         worst = float(np.max(relative)) / tol
         if worst <= 1:
             return step
-        if step == maxiter or (last is not None and _over_budget(surrogate.comm, start, step, worst / last, worst, budget)):
+        if step == maxiter or (last is not None and over_budget(surrogate.comm, start, step, worst / last, worst, budget)):
             return None
         last = worst
         kept = [block for block, size in zip(R, relative) if size > tol]
@@ -71,13 +71,3 @@ def _preconditioned(surrogate: MaterialSurrogate, factors, blocks: list[np.ndarr
     out = Z.getDenseArray().copy()
     Z.destroy()
     return out
-
-
-def _over_budget(comm, start: float, steps: int, rate: float, worst: float, budget: float) -> bool:
-    """Whether the steps still needed to bring the residual down by ``worst`` at
-    ``rate`` per step, each as long as the ``steps`` taken since ``start``, would
-    take longer than ``budget`` seconds (what is spent is spent either way; the
-    slowest rank's clock, so that all ranks decide alike)."""
-    spent = comm.allreduce(time.perf_counter() - start, op=MPI.MAX)
-    needed = np.inf if rate >= 1 else np.log(worst) / -np.log(rate)
-    return spent / steps * needed > comm.allreduce(budget, op=MPI.MAX)

@@ -774,6 +774,17 @@ def _reason_name(reason: int) -> str:
     return names.get(reason, str(reason))
 
 
+def coefficient_spread(c, c0) -> float | None:
+    """The spread max(c / c0) / min(c / c0) of two material coefficient vectors, which
+    bounds the condition number of K(c) preconditioned by the factors of K(c0); None
+    where a coefficient is zero in one and not in the other."""
+    c, c0 = np.asarray(c, float), np.asarray(c0, float)
+    if np.any((c0 > 0) != (c > 0)):
+        return None
+    ratio = c[c > 0] / c0[c0 > 0]
+    return float(ratio.max() / ratio.min()) if len(ratio) else 1.0
+
+
 class SolverCache:
     """Ready solvers of K(c) per (c, clamped set), the ``size`` most recently used.
 
@@ -852,11 +863,9 @@ class SolverCache:
             return None
         best = None
         for (c0, pattern), solver in self._solvers.items():
-            c0 = np.asarray(c0)
-            if pattern != key[1] or np.any((c0 > 0) != (c > 0)):
+            spread = coefficient_spread(c, c0)
+            if pattern != key[1] or spread is None:
                 continue
-            ratio = c[c > 0] / c0[c0 > 0]
-            spread = float(ratio.max() / ratio.min()) if len(ratio) else 1.0
             if spread <= NEARBY_RATIO and (best is None or spread < best[0]):
                 best = (spread, solver)
         return None if best is None else best[1]

@@ -13,8 +13,9 @@ while bases from walls bulging under pressure got it within 4 %. So three kinds:
    smooth random pressure p on each loaded wall (its own sign and size per wall: one
    organ fills while another empties), plus a smaller smooth random tangential
    traction, pushed through the forward model with the estimated materials drawn over
-   their bounds. Examples share a factorization per material level (``levels``), and
-   each level solves its examples as one block.
+   their bounds, at a few material levels (``levels``). The middle level is factorized
+   and solves its examples as one block; the others' examples are solved together by
+   CG on its factors (model.block_cg), or factorized each where that would not pay.
 3. **Smooth random displacement modes** (a third): per wall a Gaussian-process sample
    (squared-exponential kernel of length ``length``; random Fourier features).
 
@@ -36,7 +37,9 @@ import dolfinx
 import dolfinx.fem.petsc
 from dolfinx import fem
 
+from fenics_elasto.model.block_cg import LockstepCG, cg_steps_bound
 from fenics_elasto.model.dofs import times_block
+from fenics_elasto.model.solvers import DirectSolver, SolverError, coefficient_spread
 from fenics_elasto.util.errors import require
 from fenics_elasto.geometry.fields import SmoothFields
 from fenics_elasto.util.logs import log
@@ -59,7 +62,7 @@ class Generator:
     seed: int = 0
     length: float | None = None  # mesh units; None: from the scene
     amplitude: float | None = None  # mesh units; None: from the scene
-    levels: int = 3  # material values (factorizations) shared by the solved examples
+    levels: int = 3  # material values shared by the solved examples (one factorization: _borrowed_walls)
     solved_share: float = 2 / 3  # pressure/traction examples; the rest are displacement modes
 
     def as_dict(self) -> dict:
@@ -182,9 +185,10 @@ def material_levels(problem, count: int, rng) -> list[np.ndarray]:
 
 def pressure_examples(problem, count: int, length: float, rng, levels: int) -> np.ndarray:
     """(force_dofs, count): walls moved by random smooth pressure and traction fields,
-    solved through the forward model at a few material values (one factorization each).
+    solved through the forward model at a few material values (one factorization: the
+    middle value's; _borrowed_walls).
     Every random draw comes first, in the order the examples were always drawn in, so
-    that the first level's factorization runs beside the fields' evaluation and the
+    that the middle level's factorization runs beside the fields' evaluation and the
     loads' assembly (serial: solvers.SolverCache.ahead)."""
     forward, model = problem.forward, problem.model
     loads = WallLoads(forward)
@@ -195,9 +199,10 @@ def pressure_examples(problem, count: int, length: float, rng, levels: int) -> n
     walls = np.unique(q_groups[q_groups >= 0])  # each wall its own sign and size: one fills, one empties
     sizes = [rng.normal(0.0, 1.0, count)[:, None] for _ in walls]
     thetas = material_levels(problem, min(levels, count), rng)
+    first = _middle(problem, thetas)  # factorized; the others borrow its factors (_borrowed_walls)
     out = np.zeros((forward.force_dofs, count))
     with model.solvers.one_at_a_time():
-        model.factorize_ahead(forward.coefficients(thetas[0])[0], forward.clamped)
+        model.factorize_ahead(forward.coefficients(thetas[first])[0], forward.clamped)
         p = wall_fields(loads.q_points, q_groups, pressure)[..., 0]
         t = 0.3 * wall_fields(loads.v_points, v_groups, traction)
         for g, size in zip(walls, sizes):
@@ -209,13 +214,23 @@ def pressure_examples(problem, count: int, length: float, rng, levels: int) -> n
         rhs = P.getDenseArray()
         rhs[forward.clamped] = 0.0
         level_of = np.arange(count) % len(thetas)
-        for level, theta in enumerate(thetas):
-            chosen = np.flatnonzero(level_of == level)
-            out[:, chosen] = _solved_walls(problem, theta, rhs[:, chosen])
-            log.info(f"  {len(chosen)} pressure/traction examples at {problem.params.describe(theta)}")
+        chosen = [np.flatnonzero(level_of == level) for level in range(len(thetas))]
+        out[:, chosen[first]] = _solved_walls(problem, thetas[first], rhs[:, chosen[first]])
+        log.info(f"  {len(chosen[first])} pressure/traction examples at {problem.params.describe(thetas[first])}")
+        others = [level for level in range(len(thetas)) if level != first]
+        solved = _borrowed_walls(problem, thetas[first], [(thetas[level], rhs[:, chosen[level]]) for level in others])
+        for level, walls in zip(others, solved):
+            out[:, chosen[level]] = walls
         for M in (P, T):
             M.destroy()
     return out
+
+
+def _middle(problem, thetas: list[np.ndarray]) -> int:
+    """The level nearest the middle of the others (in s = log E, nu): the one whose
+    factors precondition them best."""
+    s = np.array([problem.params.to_s(theta) for theta in thetas])
+    return int(np.argmin([np.abs(s - si).max(axis=0).sum() for si in s]))
 
 
 def _solved_walls(problem, theta, rhs: np.ndarray) -> np.ndarray:
@@ -226,11 +241,63 @@ def _solved_walls(problem, theta, rhs: np.ndarray) -> np.ndarray:
     B.getDenseArray()[:] = rhs
     with model.factorize(forward.coefficients(theta)[0], forward.clamped).loosened(EXAMPLE_RTOL) as solver:
         solver.solve_many(B, X)
-    rows = forward.loaded.dofs(model.dofs.bs).ravel()
-    fields = X.getDenseArray()[rows].reshape(len(forward.loaded), forward.gdim * rhs.shape[1])
+    walls = _walls(problem, X.getDenseArray())
     for M in (B, X):
         M.destroy()
-    return forward.loaded.gather(fields).reshape(-1, rhs.shape[1])
+    return walls
+
+
+def _borrowed_walls(problem, first: np.ndarray, levels: list[tuple[np.ndarray, np.ndarray]]) -> list[np.ndarray]:
+    """Each level's walls (``_solved_walls``: its theta, its loads) by CG on the factors
+    of the ``first`` level's K, all levels' columns one block (``_lockstep``): one
+    factorization for the whole training. Each level factorized as before where that
+    cannot be done or would not pay."""
+    solved = _lockstep(problem, first, levels) if levels else None
+    if solved is not None:
+        return solved
+    solved = []
+    for theta, rhs in levels:
+        solved.append(_solved_walls(problem, theta, rhs))
+        log.info(f"  {rhs.shape[1]} pressure/traction examples at {problem.params.describe(theta)}")
+    return solved
+
+
+def _lockstep(problem, first: np.ndarray, levels: list[tuple[np.ndarray, np.ndarray]]) -> list[np.ndarray] | None:
+    """``_borrowed_walls`` by lock-step CG on the first level's factors (model.block_cg):
+    on the default phantom (116k DOFs) the levels E 203.5 and 3.48 on the factors at 23.2
+    took 10 steps together, where each refactorization took 10-13 s. None with CG + AMG
+    (no factors), or where CG's bound would cost more than the factorizations it saves,
+    or did not converge."""
+    forward, model = problem.forward, problem.model
+    c0 = forward.coefficients(first)[0]
+    base = model.solvers.factors_near(c0, forward.clamped)
+    coefficients = [forward.coefficients(theta)[0] for theta, _ in levels]
+    spreads = [coefficient_spread(c, c0) for c in coefficients]
+    known = [spread for spread in spreads if spread is not None]
+    if not isinstance(base, DirectSolver) or len(known) < len(spreads):
+        return None
+    systems = [(model.solvers.stiffness(c, forward.clamped), rhs) for c, (_, rhs) in zip(coefficients, levels)]
+    try:  # the stiffness matrices go whatever happens
+        solutions, steps = LockstepCG(base, systems, EXAMPLE_RTOL).solve(
+            cg_steps_bound(max(known), EXAMPLE_RTOL), budget=len(levels) * base.seconds)
+    except SolverError as why:
+        log.info(f"  {why}: each level factorized instead")
+        return None
+    finally:
+        for K, _ in systems:
+            K.destroy()
+    for theta, rhs in levels:
+        log.info(f"  {rhs.shape[1]} pressure/traction examples at {problem.params.describe(theta)} "
+                 f"(CG on the factors at {problem.params.describe(first)}: {steps} steps)")
+    return [_walls(problem, X) for X in solutions]
+
+
+def _walls(problem, X: np.ndarray) -> np.ndarray:
+    """(force_dofs, k): the loaded walls' part of solutions X (owned rows, k columns)."""
+    forward = problem.forward
+    rows = forward.loaded.dofs(problem.model.dofs.bs).ravel()
+    fields = X[rows].reshape(len(forward.loaded), forward.gdim * X.shape[1])
+    return forward.loaded.gather(fields).reshape(-1, X.shape[1])
 
 
 def wall_fields(points: np.ndarray, groups: np.ndarray, fields: SmoothFields) -> np.ndarray:

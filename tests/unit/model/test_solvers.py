@@ -433,7 +433,8 @@ def test_cli_failed_factorization_is_one_line_and_exit_2(scenes, tmp_path, monke
 @pytest.mark.slow
 def test_two_ranks_equal_serial(scenes, tmp_path):
     """Iterative on 2 ranks = direct serially (forward solve and block, canonical order),
-    and so is direct on 2 ranks, its solve at a nearby E on the first factors included."""
+    and so is direct on 2 ranks, its solves at other E on the first factors included (one
+    at a nearby E, two in lock step)."""
     problem = scenes["prostate-phantom"]
     serial, parallel, direct2 = tmp_path / "serial.npz", tmp_path / "parallel.npz", tmp_path / "direct2.npz"
     run_mpi_script(MPI_SCRIPT, 1, problem, "direct", serial)
@@ -445,5 +446,6 @@ def test_two_ranks_equal_serial(scenes, tmp_path):
     assert relative(b["X"], a["X"]) < 1e-6
     # one factorization per clamped set (forces; the block's boundary modes): the nearby solve adds none
     assert int(c["ranks"]) == 2 and int(a["factorizations"]) == int(c["factorizations"]) == 2
-    for key in ("u", "X", "near"):
+    for key in ("u", "X", "near", "lockstep"):
         assert relative(c[key], a[key]) < 1e-6, key
+    assert np.linalg.norm(a["lockstep"]) > 0  # the lock-step CG's solutions (model.block_cg) were there to compare
