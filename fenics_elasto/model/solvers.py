@@ -315,6 +315,9 @@ class LinearSolver:
         self.ksp.setOperators(self.K)
         self._setup()
 
+    def ready(self) -> None:
+        """Wait for a factorization started ahead (DirectSolver): what follows is timed alone."""
+
     def _setup(self) -> None:
         raise NotImplementedError
 
@@ -415,6 +418,9 @@ class DirectSolver(LinearSolver):
     def refresh(self) -> None:
         self._settle()
         super().refresh()
+
+    def ready(self) -> None:
+        self._settle()
 
     def destroy(self) -> None:
         self._settle()

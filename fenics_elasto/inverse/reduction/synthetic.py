@@ -27,6 +27,7 @@ mean extent, ``amplitude`` 2 % of the scene's diameter.
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -215,10 +216,11 @@ def pressure_examples(problem, count: int, length: float, rng, levels: int) -> n
         rhs[forward.clamped] = 0.0
         level_of = np.arange(count) % len(thetas)
         chosen = [np.flatnonzero(level_of == level) for level in range(len(thetas))]
-        out[:, chosen[first]] = _solved_walls(problem, thetas[first], rhs[:, chosen[first]])
+        out[:, chosen[first]], column_seconds = _solved_walls(problem, thetas[first], rhs[:, chosen[first]])
         log.info(f"  {len(chosen[first])} pressure/traction examples at {problem.params.describe(thetas[first])}")
         others = [level for level in range(len(thetas)) if level != first]
-        solved = _borrowed_walls(problem, thetas[first], [(thetas[level], rhs[:, chosen[level]]) for level in others])
+        solved = _borrowed_walls(problem, thetas[first], [(thetas[level], rhs[:, chosen[level]]) for level in others],
+                                 column_seconds)
         for level, walls in zip(others, solved):
             out[:, chosen[level]] = walls
         for M in (P, T):
@@ -233,41 +235,49 @@ def _middle(problem, thetas: list[np.ndarray]) -> int:
     return int(np.argmin([np.abs(s - si).max(axis=0).sum() for si in s]))
 
 
-def _solved_walls(problem, theta, rhs: np.ndarray) -> np.ndarray:
+def _solved_walls(problem, theta, rhs: np.ndarray) -> tuple[np.ndarray, float]:
     """(force_dofs, k): the loaded walls' motion under the loads ``rhs`` (owned rows, k
-    columns) at the materials theta, to EXAMPLE_RTOL."""
+    columns) at the materials theta, to EXAMPLE_RTOL; and the seconds a column took per
+    pass over the factors (their solves timed alone)."""
     forward, model = problem.forward, problem.model
     B, X = model.dofs.dense(rhs.shape[1]), model.dofs.dense(rhs.shape[1])
     B.getDenseArray()[:] = rhs
     with model.factorize(forward.coefficients(theta)[0], forward.clamped).loosened(EXAMPLE_RTOL) as solver:
+        solver.ready()
+        start, steps = time.perf_counter(), model.stats.iterations
         solver.solve_many(B, X)
+        passes = 1 + model.stats.iterations - steps  # refinement steps apply the factors again
+        column_seconds = (time.perf_counter() - start) / (passes * rhs.shape[1])
     walls = _walls(problem, X.getDenseArray())
     for M in (B, X):
         M.destroy()
-    return walls
+    return walls, column_seconds
 
 
-def _borrowed_walls(problem, first: np.ndarray, levels: list[tuple[np.ndarray, np.ndarray]]) -> list[np.ndarray]:
+def _borrowed_walls(problem, first: np.ndarray, levels: list[tuple[np.ndarray, np.ndarray]],
+                    column_seconds: float) -> list[np.ndarray]:
     """Each level's walls (``_solved_walls``: its theta, its loads) by CG on the factors
     of the ``first`` level's K, all levels' columns one block (``_lockstep``): one
-    factorization for the whole training. Each level factorized as before where that
-    cannot be done or would not pay."""
-    solved = _lockstep(problem, first, levels) if levels else None
+    factorization for the whole training, where CG's bound on the steps, at
+    ``column_seconds`` per column and step, costs less than factorizing each level.
+    Each level factorized as before otherwise."""
+    solved = _lockstep(problem, first, levels, column_seconds) if levels else None
     if solved is not None:
         return solved
     solved = []
     for theta, rhs in levels:
-        solved.append(_solved_walls(problem, theta, rhs))
+        solved.append(_solved_walls(problem, theta, rhs)[0])
         log.info(f"  {rhs.shape[1]} pressure/traction examples at {problem.params.describe(theta)}")
     return solved
 
 
-def _lockstep(problem, first: np.ndarray, levels: list[tuple[np.ndarray, np.ndarray]]) -> list[np.ndarray] | None:
+def _lockstep(problem, first: np.ndarray, levels: list[tuple[np.ndarray, np.ndarray]],
+              column_seconds: float) -> list[np.ndarray] | None:
     """``_borrowed_walls`` by lock-step CG on the first level's factors (model.block_cg):
     on the default phantom (116k DOFs) the levels E 203.5 and 3.48 on the factors at 23.2
     took 10 steps together, where each refactorization took 10-13 s. None with CG + AMG
-    (no factors), or where CG's bound would cost more than the factorizations it saves,
-    or did not converge."""
+    (no factors), where CG would cost more than the factorizations it saves (predicted,
+    or at the rate seen), or where it did not converge."""
     forward, model = problem.forward, problem.model
     c0 = forward.coefficients(first)[0]
     base = model.solvers.factors_near(c0, forward.clamped)
@@ -276,10 +286,15 @@ def _lockstep(problem, first: np.ndarray, levels: list[tuple[np.ndarray, np.ndar
     known = [spread for spread in spreads if spread is not None]
     if not isinstance(base, DirectSolver) or len(known) < len(spreads):
         return None
+    steps, budget = cg_steps_bound(max(known), EXAMPLE_RTOL), len(levels) * base.seconds
+    predicted = steps * sum(rhs.shape[1] for _, rhs in levels) * column_seconds
+    if not lockstep_pays(predicted, budget):
+        log.info(f"  each level factorized: CG on the first's factors would take up to {predicted:.0f} s, "
+                 f"the factorizations {budget:.0f} s")
+        return None
     systems = [(model.solvers.stiffness(c, forward.clamped), rhs) for c, (_, rhs) in zip(coefficients, levels)]
     try:  # the stiffness matrices go whatever happens
-        solutions, steps = LockstepCG(base, systems, EXAMPLE_RTOL).solve(
-            cg_steps_bound(max(known), EXAMPLE_RTOL), budget=len(levels) * base.seconds)
+        solutions, steps = LockstepCG(base, systems, EXAMPLE_RTOL).solve(steps, budget)
     except SolverError as why:
         log.info(f"  {why}: each level factorized instead")
         return None
@@ -290,6 +305,12 @@ def _lockstep(problem, first: np.ndarray, levels: list[tuple[np.ndarray, np.ndar
         log.info(f"  {rhs.shape[1]} pressure/traction examples at {problem.params.describe(theta)} "
                  f"(CG on the factors at {problem.params.describe(first)}: {steps} steps)")
     return [_walls(problem, X) for X in solutions]
+
+
+def lockstep_pays(predicted: float, budget: float) -> bool:
+    """Whether CG's predicted seconds stay below the factorizations' (``budget``): at
+    rank 80 (120 examples) CG's 54 columns do, at rank 240 (400) its 534 do not."""
+    return predicted < budget
 
 
 def _walls(problem, X: np.ndarray) -> np.ndarray:
