@@ -292,7 +292,7 @@ def _picture_2d(groups, reference, context, target, title, off_screen: bool) -> 
 def caption(record: dict, case: str = "", units: str = "") -> str:
     """The picture's title from a result.json record: the command and case, then the
     answer -- the estimated constants (E also as a ratio to the reference material,
-    +- sigma when the record has ``uncertainty``) and the misfit, or a simulation's
+    their 95 % interval, or +- sigma, when the record has ``uncertainty``) and the misfit, or a simulation's
     materials and largest displacement."""
     unit = f" {units}" if units else ""
     materials = record.get("materials", {})
@@ -310,8 +310,13 @@ def caption(record: dict, case: str = "", units: str = "") -> str:
 def _estimated(label: str, record: dict) -> str:
     material, key = label.split(".")
     value = record["materials"][material][key]
-    sigma = (record.get("uncertainty") or {}).get(label, {}).get("std")
-    text = f"{material} {key} = {value:.4g}" + (f" ± {sigma:.2g}" if sigma is not None and np.isfinite(sigma) else "")
+    spread = (record.get("uncertainty") or {}).get(label, {})
+    sigma, interval = spread.get("std"), spread.get("ci95")
+    text = f"{material} {key} = {value:.4g}"
+    if interval is not None:  # the interval, not +- sigma: a one-sided one (0.84-161 about 3.16) is no +- 4.2
+        text += f" (95 %: {interval[0]:.4g}-{interval[1]:.4g})"
+    elif sigma is not None and np.isfinite(sigma):
+        text += f" ± {sigma:.2g}"
     reference = [(n, m["E"]) for n, m in record["materials"].items() if f"{n}.E" not in record["estimated"]]
     if key == "E" and reference:
         name, E = reference[0]

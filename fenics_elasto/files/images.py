@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from fenics_elasto.util.errors import UserError, require
+from fenics_elasto.util.logs import log
 
 NIFTI = (".nii", ".nii.gz")
 ITK = (".nrrd", ".nhdr", ".mha", ".mhd")
@@ -80,7 +81,24 @@ def _read_nifti(path: Path) -> tuple[np.ndarray, np.ndarray]:
     import nibabel as nib
 
     image: Any = nib.load(str(path))  # a Nifti1Image (or Nifti2Image) for these suffixes
-    return np.asanyarray(image.dataobj), np.asarray(image.affine, dtype=float)
+    affine = np.asarray(image.affine, dtype=float)
+    _say_if_qform_differs(image, affine, path)
+    return np.asanyarray(image.dataobj), affine
+
+
+def _say_if_qform_differs(image: Any, affine: np.ndarray, path: Path) -> None:
+    """A header whose sform and qform both hold a frame, and disagree by more than half a
+    voxel somewhere in the image, is said: the sform is used (as nibabel, 3D Slicer and
+    ITK do), and a tool that read the qform would put the labels elsewhere."""
+    qform, code = image.get_qform(coded=True)
+    if qform is None or not code or not image.get_sform(coded=True)[1]:
+        return
+    corners = np.array([[i, j, k, 1.0] for i in (0, 1) for j in (0, 1) for k in (0, 1)]) * np.r_[image.shape[:3], 1]
+    apart = float(np.max(np.linalg.norm((corners @ (affine - qform).T)[:, :3], axis=1)))
+    voxel = float(np.min(np.linalg.norm(affine[:3, :3], axis=0)))
+    if apart > 0.5 * voxel:
+        log.warning(f"{path.name}: its sform and qform disagree by up to {apart:.3g} (image units); the sform is "
+                    "used, as nibabel, 3D Slicer and ITK do")
 
 
 RAS_SPACES = ("right-anterior-superior", "RAS")

@@ -62,6 +62,13 @@ class Shell:
         return np.array([self.points.min(axis=0), self.points.max(axis=0)])
 
 
+# A voxel staircase (_unstepped): this many triangles at least, 95 % of its area facing at
+# most this many directions (a voxel export's faces: 6, SurfaceNets' also their diagonals)
+STAIRCASE_TRIANGLES = 200
+STAIRCASE_DIRECTIONS = 26
+STAIRCASE_EDGES = 3  # ... and at least this many times the sharp edges of a box of as many triangles
+
+
 # --------------------------------------------------------------------------- reading
 
 
@@ -234,6 +241,17 @@ def _orient_outward(points, triangles, label):
     return triangles, component
 
 
+def _touching_pieces(triangles: np.ndarray, component: np.ndarray) -> np.ndarray:
+    """Vertices used by two edge-connected pieces: where a segmentation's diagonal
+    voxels meet, marching cubes and SurfaceNets make such bow-ties, and each piece alone
+    is closed while together they are no solid gmsh can mesh."""
+    vertex = triangles.ravel()
+    piece = np.repeat(component, 3)
+    pairs = np.unique(np.c_[vertex, piece], axis=0)
+    used, count = np.unique(pairs[:, 0], return_counts=True)
+    return used[count > 1]
+
+
 def self_intersecting(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """Triangles whose two sides do not see winding numbers 1 (inside) and 0 (outside):
     on a closed outward surface that does not pass through itself there are none."""
@@ -262,9 +280,40 @@ class NotClosed(UserError):
 
 
 def closed_shells(path: Path, label: str, role: str, name: str) -> list[Shell]:
-    """The file's closed components, repaired or rebuilt (see the module docstring), outward."""
+    """The file's closed components, repaired or rebuilt (see the module docstring),
+    outward; a voxel staircase smoothed as a label map's surfaces are."""
     points, triangles = read_triangles(path, label)
-    return solid_shells(points, triangles, label, role, name)
+    return [_unstepped(shell) for shell in solid_shells(points, triangles, label, role, name)]
+
+
+def _unstepped(shell: Shell) -> Shell:
+    """The shell with its points Taubin-smoothed (label_surfaces.smoothed) if it is a voxel
+    staircase: an export with its smoothing off (ITK-SNAP, Slicer) has its faces in a few
+    directions only, and gmsh failed to mesh such a body (its corners and steps every
+    voxel); the same voxels as a label map are smoothed first."""
+    from fenics_elasto.geometry.label_surfaces import smoothed
+
+    n = len(shell.triangles)
+    if n < STAIRCASE_TRIANGLES or (directions := _face_directions(shell.points, shell.triangles)) > STAIRCASE_DIRECTIONS:
+        return shell
+    # A box faces 6 ways too, but its sharp edges are its 12 edges' ~12 sqrt(n / 12); a
+    # staircase's are most of its edges (a quarter to a third of a voxel export's)
+    steps = len(sharp_edges(shell.points, shell.triangles))
+    if steps < STAIRCASE_EDGES * 12 * np.sqrt(n / 12):
+        return shell
+    log.info(f"{shell.label}: a voxel staircase (its faces point {directions} ways, {steps} edges are steps): "
+             "smoothed as a label map's surfaces are")
+    return Shell(shell.role, shell.name, shell.label, smoothed(shell.points, shell.triangles), shell.triangles)
+
+
+def _face_directions(points: np.ndarray, triangles: np.ndarray) -> int:
+    """How many directions (to a hundredth) 95 % of the surface's area faces."""
+    normals = np.cross(points[triangles[:, 1]] - points[triangles[:, 0]], points[triangles[:, 2]] - points[triangles[:, 0]])
+    area = np.linalg.norm(normals, axis=1)
+    unit = np.round(normals / np.maximum(area, 1e-300)[:, None], 2)
+    _, which = np.unique(unit, axis=0, return_inverse=True)
+    shares = np.sort(np.bincount(which.ravel(), area))[::-1].cumsum() / max(area.sum(), 1e-300)
+    return int(np.searchsorted(shares, 0.95) + 1)
 
 
 def solid_shells(points: np.ndarray, triangles: np.ndarray, label: str, role: str, name: str) -> list[Shell]:
@@ -313,6 +362,10 @@ def shells_of(points: np.ndarray, triangles: np.ndarray, label: str, role: str, 
         defect = f"{np.sum(count != 2)} edges are not shared by two triangles (an opening too wide to fill)"
         raise NotClosed(f"{label}: cannot be made a closed surface ({defect})", defect)
     triangles, component = _orient_outward(points, triangles, label)
+    touching = _touching_pieces(triangles, component)
+    if len(touching):
+        defect = f"two of its pieces touch at {len(touching)} vertices (a bow-tie: each piece closed, not apart)"
+        raise NotClosed(f"{label}: {defect}, e.g. at {_point(points[touching[0]])}", defect)
     shells = [_shell(role, name, label, points, triangles[component == c]) for c in range(component.max() + 1)]
     for shell in shells:  # one by one: a piece inside another sees winding number 2, rightly
         crossing = self_intersecting(shell.points, shell.triangles)

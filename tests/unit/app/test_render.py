@@ -36,9 +36,14 @@ def test_caption_names_the_case_and_the_answer():
     assert caption(ESTIMATE, "noise_1mm", "mm") == (
         "estimate: noise_1mm\nprostate E = 36.63 (3.66 x tissue); rms distance to target 0.0362 mm")
     sure = {**ESTIMATE, "uncertainty": {"prostate.E": {"std": 0.91, "ci95": [35.0, 38.4]}, "noise_std": 0.03}}
-    assert "prostate E = 36.63 ± 0.91 (3.66 x tissue)" in caption(sure)
+    assert "prostate E = 36.63 (95 %: 35-38.4) (3.66 x tissue)" in caption(sure)
+    # a one-sided interval is the interval, not +- sigma (3.16 +- 4.2 about 0.84-161)
+    weak = {**ESTIMATE, "uncertainty": {"prostate.E": {"std": 4.2, "ci95": [0.8421, 160.9]}}}
+    assert "= 36.63 (95 %: 0.8421-160.9)" in caption(weak) and "±" not in caption(weak)
+    no_interval = {**ESTIMATE, "uncertainty": {"prostate.E": {"std": 0.91}}}
+    assert "prostate E = 36.63 ± 0.91 (3.66 x tissue)" in caption(no_interval)
     not_computed = {**ESTIMATE, "uncertainty": {"note": "not computed"}}
-    assert "±" not in caption(not_computed)
+    assert "±" not in caption(not_computed) and "95 %" not in caption(not_computed)
     simulated = {"materials": {"tissue": {"E": 10.0, "nu": 0.4}, "prostate": {"E": 30.0, "nu": 0.4}},
                  "max_displacement": 8.07}
     assert caption(simulated, "truth", "mm") == ("simulate: truth\ntissue E = 10, prostate E = 30; "

@@ -13,6 +13,7 @@ import pytest
 
 import dolfinx
 import labelmaps as lm
+from conftest import logged
 from fenics_elasto.files.images import read_label_image
 from fenics_elasto.geometry.label_surfaces import label_surface
 from fenics_elasto.config.scene_spec import read_scene_spec
@@ -136,6 +137,28 @@ def test_nrrd_and_metaimage_give_the_niftis_world_frame(tmp_path, suffix):
     assert (other.labels == nifti.labels).all()
     assert np.allclose(other.affine, nifti.affine, atol=1e-6)
     assert np.allclose(nifti.affine, lm.affine())
+
+
+def test_a_qform_that_disagrees_with_the_sform_is_said(tmp_path):
+    """Both frames set and 40 mm apart: the sform is used (the mesh lands where it says),
+    with a line saying so; one frame alone, or both alike, says nothing."""
+    import nibabel as nib
+
+    path = tmp_path / "seg.nii.gz"
+    lm.write_nifti(path, lm.label_map())
+    image = nib.load(str(path))
+    moved = lm.affine()
+    moved[:3, 3] += [40.0, 0.0, 0.0]
+    image.set_qform(lm.affine(), code=1)
+    nib.save(image, str(path))
+    with logged([]) as alike:
+        read_label_image(path, "seg")
+    image.set_qform(moved, code=1)
+    nib.save(image, str(path))
+    with logged([]) as lines:
+        read = read_label_image(path, "seg")
+    assert np.allclose(read.affine, lm.affine(), atol=1e-4)  # the sform's frame
+    assert not alike and any("sform and qform disagree by up to 40" in line for line in lines), lines
 
 
 def test_nrrd_scene_has_the_niftis_surfaces(tmp_path):
