@@ -8,6 +8,9 @@ The public API (``import fenics_elasto as fe``)::
     result = fe.estimate(fe.load_scene(path), fe.Target(surfaces=sim.surface("outline")))
     print(result)                                             # result.values, .std, .ci95
 
+Progress lines are silent from Python until ``fenics_elasto.util.logs.show()``; the
+warnings are in ``result.warnings`` either way.
+
 The PyPI wheel of DOLFINx (dolfinx-solver-real) requires ``dolfinx_solver`` to be
 imported before ``dolfinx`` and ``petsc4py``; doing it here once means no other module
 has to remember. A DOLFINx from conda or a container has no such module, and needs none.

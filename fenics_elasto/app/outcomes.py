@@ -59,7 +59,9 @@ class Estimate(Solution):
 
     ``values``, ``std`` and ``ci95`` are keyed "region.param" (e.g. "inclusion.E") over
     the estimated constants; ``std`` is NaN and ``ci95`` (NaN, NaN) where no uncertainty
-    was computed (an interrupted run). ``materials`` holds every region's E and nu,
+    was computed (a run interrupted while it was being worked out, or one whose inner
+    solver keeps no response of the controls; a run interrupted earlier has the Laplace
+    interval at its best value). ``materials`` holds every region's E and nu,
     ``forces`` the recovered nodal forces of the loaded nodes (flat), ``warnings`` what
     the estimate found worth a warning, ``record`` all of result.json.
     """
@@ -140,5 +142,7 @@ class Estimate(Solution):
         offset = (self.record.get("uncertainty") or {}).get("target_offset")
         if not offset:
             return []
-        shifts = [(label, ds, label.endswith(".E")) for label, ds in offset["shift"].items()]
+        # result.json holds the shifts in units (relative for E); offset_lines takes them in s = (log E, nu)
+        shifts = [(label, np.log1p(shift) if label.endswith(".E") else shift, label.endswith(".E"))
+                  for label, shift in offset["shift"].items() if shift is not None]
         return ["  " + line for line in offset_lines(offset["offset"], shifts)]

@@ -122,7 +122,7 @@ def surface_from_arrays(points, cells, gdim: int, name: str) -> Surface:
     require(np.isfinite(points).all(), f"{name}: the target has NaN or infinite coordinates")
     require(cells.ndim == 2 and cells.shape[1] == gdim and len(cells) > 0 and np.issubdtype(cells.dtype, np.integer),
             f"{name}: cells must be an (m, {gdim}) integer array ({'segments' if gdim == 2 else 'triangles'}), "
-            f"got shape {cells.shape}")
+            f"got shape {cells.shape} of {cells.dtype}")
     require(cells.min() >= 0 and cells.max() < len(points), f"{name}: cells index points outside 0..{len(points) - 1}")
     return Surface(points, cells)
 

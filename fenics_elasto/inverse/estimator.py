@@ -42,7 +42,8 @@ from fenics_elasto.inverse.outer import minimize_on_surrogate, minimize_profile,
 from fenics_elasto.inverse.profile import LOOSE, Profile, SurrogateProfile
 from fenics_elasto.inverse.reduction.bases import reach_warning, with_matched_motion
 from fenics_elasto.inverse.states import EARLY_SPREAD, REWEIGH_ROUNDS, weigh_by_residuals
-from fenics_elasto.inverse.report import describe_offset, describe_uncertainty, fit_of_bases, run_warnings
+from fenics_elasto.inverse.report import (describe_offset, describe_uncertainty, fit_of_bases, prior_shift,
+                                          run_warnings)
 from fenics_elasto.inverse.report import record as result_record
 from fenics_elasto.inverse.surrogate import MaterialSurrogate, release
 from fenics_elasto.inverse.uncertainty.answer import AnswerUncertainty
@@ -359,20 +360,14 @@ def _run(estimator: Estimator, warnings: list[str], extent_warnings: list[str], 
         log.info("interrupted: writing the best result so far")
     theta, best, forces = estimator.final()
     clock = time.perf_counter()
-    if not interrupted:
-        estimator.uncertainty.linearise_answer(theta, best)
-    post = estimator.uncertainty.posterior(best)
-    if post is not None:  # the final answer's only: the set-up check's posterior has no use for it
-        lin = estimator.profile.linearisation(best)
-        assert lin is not None  # the posterior is made from it
-        post.offset = target_offset(problem.misfit, lin, best.evaluation)
-    if post is not None and not interrupted:
-        estimator.uncertainty.profile_likelihood_interval(post)
-    fit = fit_of_bases(estimator, theta, best, post, interrupted)
-    if estimator.profile.surrogate is not None:  # its last use was the half-rank check (fit_of_bases)
-        release(estimator.profile.surrogate)  # a degree-3 matrix made now reuses its memory
-    if post is not None and not interrupted:
-        add_model_error(problem, post, theta, best.evaluation, estimator.profile.linearisation(best), fit, prepared)
+    note = (f"not computed: interrupted, and the {estimator.inner_name} inner solver keeps no response of the "
+            "controls (profiling them out would take another inner fit's solves)")
+    try:
+        post, fit = _uncertainty(estimator, theta, best, interrupted, prepared)
+    except KeyboardInterrupt:  # the answer stands; what was being worked out of its uncertainty goes
+        interrupted, note = True, "not computed: interrupted while it was being worked out"
+        post, fit = None, fit_of_bases(estimator, theta, best, None, interrupted=True)
+        log.info("interrupted while working out the uncertainty: writing the answer without it")
     uncertainty_seconds = time.perf_counter() - clock
     warnings = (warnings + estimator.uncertainty.warnings + run_warnings(estimator, theta, interrupted, fit, post)
                 + extent_warnings + target_warnings(problem, best, estimator.options.state_noise))
@@ -380,9 +375,7 @@ def _run(estimator: Estimator, warnings: list[str], extent_warnings: list[str], 
         log.warning(text)
     record = result_record(estimator, theta, best, phi_undeformed, warnings, interrupted, start)
     record["bases_fit"] = fit if fit is None else {**fit, "held_out_energy": held_out}
-    record["uncertainty"] = posterior_record(post) if post is not None else {
-        "note": f"not computed: interrupted, and the {estimator.inner_name} inner solver keeps no response of the "
-                "controls (profiling them out would take another inner fit's solves)"}
+    record["uncertainty"] = posterior_record(post) if post is not None else {"note": note}
     if post is not None:  # what the answer's posterior, offset and profile interval cost
         record["uncertainty"]["seconds"] = round(uncertainty_seconds, 3)
     smoothing = problem.misfit.smoothing()
@@ -403,6 +396,31 @@ def _run(estimator: Estimator, warnings: list[str], extent_warnings: list[str], 
     record["wall_time_s"] = round(time.perf_counter() - start, 3)
     return EstimateResult(theta, list(problem.params.labels), best.evaluation.u, forces, best.evaluation, record,
                           state_forces, force_covariance)
+
+
+def _uncertainty(estimator: Estimator, theta, best: InnerResult, interrupted: bool,
+                 prepared: HigherDegreeModel | None) -> tuple:
+    """(the answer's posterior or None, result.json's bases_fit): the posterior with its
+    target offset, profile interval and model error -- only the first two after an
+    ``interrupted`` run."""
+    problem = estimator.problem
+    if not interrupted:
+        estimator.uncertainty.linearise_answer(theta, best)
+    post = estimator.uncertainty.posterior(best)
+    if post is not None:  # the final answer's only: the set-up check's posterior has no use for it
+        lin = estimator.profile.linearisation(best)
+        assert lin is not None  # the posterior is made from it
+        post.offset = target_offset(problem.misfit, lin, best.evaluation)
+    if post is not None and not interrupted:
+        estimator.uncertainty.profile_likelihood_interval(post)
+    fit = fit_of_bases(estimator, theta, best, post, interrupted)
+    if post is not None and not interrupted:
+        post.prior_shift_s = prior_shift(estimator, theta, post.noise_part_s)
+    if estimator.profile.surrogate is not None:  # its last use was the prior's check (prior_shift)
+        release(estimator.profile.surrogate)  # a degree-3 matrix made now reuses its memory
+    if post is not None and not interrupted:
+        add_model_error(problem, post, theta, best.evaluation, estimator.profile.linearisation(best), fit, prepared)
+    return post, fit
 
 
 def state_records(states, residual: np.ndarray, state_noise: str) -> dict[str, dict]:

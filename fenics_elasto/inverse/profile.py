@@ -255,3 +255,24 @@ class FewerModes(SurrogateProfile):
     def response(self, theta) -> tuple[np.ndarray, np.ndarray]:
         J, dJ = self.profile.surrogate_response(theta)
         return J[..., self.keep], dJ[..., self.keep]
+
+
+class WeakerPrior(SurrogateProfile):
+    """Phi*(theta) with the Gauss-Newton prior's weight alpha divided by ``factor``: where
+    the answer goes when the prior, not the data, placed the walls' sliding along their
+    target (report.prior_shift). On the surrogate where there is one, else on full
+    responses (a factorization each: the full force space of a small problem). Its fits
+    stop at ``tol``."""
+
+    def __init__(self, profile: Profile, factor: float, tol: float):
+        super().__init__(profile)
+        inner = profile.inner
+        self.fit_inner = GaussNewton(inner.problem, inner.q0, inner.anchor / factor, inner.maxiter, tol)
+        self.fit_inner.alpha = inner.alpha / factor
+
+    def value_and_gradient(self, s) -> tuple[float, np.ndarray]:
+        if self.profile.surrogate is not None:
+            return super().value_and_gradient(s)
+        fit = self.fit_inner.fit(self.profile.problem.response(self.params.to_theta(s), self.profile.basis))
+        self.evaluations += 1
+        return fit.value, np.full(len(s), np.nan)  # values only: Brent's search (report.prior_shift)

@@ -12,7 +12,7 @@ from fenics_elasto.inverse.inner import InnerResult
 from fenics_elasto.model.scene import shift_in_units
 from fenics_elasto.util.logs import log
 from fenics_elasto.inverse.outer import BRACKET_STEP, surrogate_minimum
-from fenics_elasto.inverse.profile import FewerModes
+from fenics_elasto.inverse.profile import FewerModes, WeakerPrior
 from fenics_elasto.inverse.uncertainty.posterior import Posterior
 from fenics_elasto.inverse.reduction.bases import bases_fit, missing_wall_motion
 
@@ -48,7 +48,7 @@ def describe_offset(post: Posterior) -> list[str]:
 
 def offset_lines(delta: float, shifts) -> list[str]:
     """The line of ``describe_offset`` from the offset ``delta`` and (label, shift in s,
-    is E) per constant -- also what result.json's target_offset holds."""
+    is E) per constant (result.json's target_offset holds the shifts in units)."""
     moved = [f"{label} by {100 * np.expm1(d):+.2g} %" if is_E else f"{label} by {d:+.2g}"
              for label, d, is_E in shifts if np.isfinite(d)]
     if not moved:
@@ -129,22 +129,50 @@ def matched_motion_shift(estimator: Estimator, theta, std_s=None) -> np.ndarray 
     return x - estimator.params.to_s(theta)
 
 
+def prior_shift(estimator: Estimator, theta, std_s=None) -> np.ndarray | None:
+    """How far s = (log E, nu) moves when the Gauss-Newton prior is PRIOR_WEAKER times
+    weaker, found as half_rank_shift's (on the surrogate, or on full responses without
+    bases). Where the prior outweighs the data misfit at the answer, the answer may rest
+    on where surface matching put the loaded walls' sliding, which the distances cannot
+    see: a user's bar gave nu 0.3238 (interval 0.3216-0.326) for 0.3 on its own exact
+    target, and 0.3049 with the prior 100x weaker. None where the prior is below the
+    misfit (the default phantom's: 0.57x), with several constants, or without Gauss-Newton."""
+    best = estimator.profile.best()
+    if (estimator.inner_name != "gauss-newton" or len(estimator.params) != 1
+            or best.prior <= PRIOR_CHECK * best.evaluation.phi):
+        return None
+    start = time.perf_counter()
+    weaker = WeakerPrior(estimator.profile, PRIOR_WEAKER, estimator.options.inner_tol)
+    smooth = estimator.surrogate is not None and not estimator.problem.misfit.rough()
+    x, evaluations = _minimum_of(estimator, weaker, theta, std_s, smooth, PRIOR_REACH)
+    log.info(f"the prior {PRIOR_WEAKER:g}x weaker: {estimator.params.describe(estimator.params.to_theta(x))} "
+             f"({evaluations} evaluations, {time.perf_counter() - start:.1f} s)")
+    return x - estimator.params.to_s(theta)
+
+
 def _minimum_with(estimator: Estimator, columns: np.ndarray, theta, std_s=None) -> tuple[np.ndarray, int]:
     """(s at the minimum of Phi* on the surrogate with each state's ``columns`` of the
     bases only, from the answer (dense algebra, no solve); the evaluations it took)."""
-    params = estimator.params
     # found to a quarter of sigma: its fits stop at inner_tol, as the scan's (Estimator._outer)
     fewer = FewerModes(estimator.profile, columns, estimator.options.inner_tol)
+    return _minimum_of(estimator, fewer, theta, std_s, not estimator.problem.misfit.rough())
+
+
+def _minimum_of(estimator: Estimator, surrogate, theta, std_s, smooth: bool,
+                reach: float | None = None) -> tuple[np.ndarray, int]:
+    """(s at the minimum of ``surrogate``'s Phi* near the answer theta, to a quarter of
+    ``std_s`` where given and within ``reach`` (RANK_REACH) of it; the evaluations it took)."""
+    reach = RANK_REACH if reach is None else reach
+    params = estimator.params
     s = params.to_s(theta)
     xtol, step, bounds = estimator.xtol, BRACKET_STEP, params.s_bounds()
     if std_s is not None:  # surrogate_minimum stops at a tenth of xtol; a bracket made in sigmas
         std_s = np.asarray(std_s, float)
         xtol = np.maximum(xtol, 2.5 * std_s)
         step = max(step, float(np.min(std_s)))
-        bounds = [(max(low, x - RANK_REACH * sd), min(high, x + RANK_REACH * sd)) if sd > 0 else (low, high)
+        bounds = [(max(low, x - reach * sd), min(high, x + reach * sd)) if sd > 0 else (low, high)
                   for (low, high), x, sd in zip(bounds, s, std_s)]
-    x, evaluations = surrogate_minimum(fewer, s, xtol, smooth=not estimator.problem.misfit.rough(), step=step,
-                                       bounds=bounds)
+    x, evaluations = surrogate_minimum(surrogate, s, xtol, smooth=smooth, step=step, bounds=bounds)
     return np.asarray(x, float), evaluations
 
 
@@ -161,8 +189,30 @@ def run_warnings(estimator: Estimator, theta, interrupted: bool, fit=None, post=
     if fit is not None and fit["wall_motion_explained"] < 0.9:
         out.append(f"the bases explain {100 * fit['wall_motion_explained']:.0f} % of the wall motion surface "
                    "matching finds; train with more or other examples (e.g. --synthetic)")
+    out += _prior_warnings(estimator, post)
     out += (_bias_warnings(estimator.params, fit, post) + _rank_warnings(estimator.params, fit, post)
             + _matched_motion_warnings(estimator.params, fit, post) + _open_interval_warnings(estimator.params, post))
+    return out
+
+
+def _prior_warnings(estimator: Estimator, post) -> list[str]:
+    """An answer that moves by more than PRIOR_SIGMAS sigmas (and BIAS_MIN) when the
+    Gauss-Newton prior is PRIOR_WEAKER times weaker (prior_shift): the prior, not the
+    data, placed it, and sigma does not count that."""
+    if post is None or post.prior_shift_s is None:
+        return []
+    out = []
+    anchor = estimator.options.anchor
+    for label, is_E, shift_s, sd, noise_sd in zip(post.labels, post.is_E, post.prior_shift_s, post.std_s,
+                                                  post.noise_part_s):
+        if sd > 0 and abs(shift_s) > max(BIAS_MIN[0] if is_E else BIAS_MIN[1], PRIOR_SIGMAS * sd):
+            far = "at least " if abs(shift_s) >= (1 - 1e-6) * PRIOR_REACH * noise_sd else ""  # the search's edge
+            moved = f"{100 * np.expm1(shift_s):+.1f} %" if is_E else f"{shift_s:+.3f}"
+            out.append(f"{label} moves by {far}{moved} ({far}{abs(shift_s) / sd:.0f} sigma) with the prior that holds the loaded "
+                       f"walls where surface matching put them {PRIOR_WEAKER:g}x weaker: the prior, not the data, "
+                       f"placed it, and its interval does not count that -- set [optimizer] anchor = "
+                       f"{anchor / PRIOR_WEAKER:g} (now {anchor:g}), or add data that see the walls' sliding "
+                       "(landmarks, another state)")
     return out
 
 
@@ -239,6 +289,10 @@ def _matched_motion_warnings(params, fit, post) -> list[str]:
 # A half-rank shift worth a warning, in stds of the answer: the pelvis phantom's filled
 # state moved 1.8 sigma (E 50.0 -> 55.2 at rank 40 of 80, truth 50), its emptied state
 # 10 sigma (85 -> 179; truth 50, reached at rank 240).
+PRIOR_CHECK = 1.0  # prior_shift: measured where the prior is more than this many times the misfit at the answer
+PRIOR_WEAKER = 100.0  # ... with the prior this many times weaker
+PRIOR_SIGMAS = 2.0  # ... and said where the answer then moves by more than this many sigmas
+PRIOR_REACH = 40.0  # ... searched for within this many noise stds (the bar's move: 17)
 RANK_SIGMAS = 4.0
 RANK_REACH = 8.0  # ... searched for within this many stds of the answer: far enough to tell a warning
 

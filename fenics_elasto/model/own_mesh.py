@@ -45,6 +45,11 @@ def _global_any(comm, flag: bool) -> bool:
 
 
 def _check_tags(mesh, cell_tags, facet_tags) -> None:
+    import dolfinx.mesh
+
+    require(isinstance(mesh, dolfinx.mesh.Mesh),
+            f"{SOURCE}: mesh must be a dolfinx.mesh.Mesh, got {type(mesh).__name__} {str(mesh)[:60]!r} (a problem "
+            "file: fe.load_scene; a .msh file: dolfinx.io.gmsh.read_from_msh first)")
     tdim = mesh.topology.dim
     require(mesh.geometry.dim == tdim, f"{SOURCE}: a {tdim}D mesh in {mesh.geometry.dim}D space; "
                                        "the mesh's geometric and topological dimensions must agree")
@@ -53,6 +58,9 @@ def _check_tags(mesh, cell_tags, facet_tags) -> None:
                                                      f"got dim {getattr(cell_tags, 'dim', None)}")
     require(getattr(facet_tags, "dim", None) == tdim - 1, f"{SOURCE}: facet_tags must be MeshTags of the facets "
                                                           f"(dim {tdim - 1}), got dim {getattr(facet_tags, 'dim', None)}")
+    for name, tags in (("cell_tags", cell_tags), ("facet_tags", facet_tags)):  # the same count of cells is not enough
+        require(tags.topology is mesh.topology._cpp_object,
+                f"{SOURCE}: {name} were made on another mesh than the one given (their topology is not the mesh's)")
 
 
 def cell_regions(mesh, cell_tags, regions: Mapping[str, int]) -> dict[str, int]:

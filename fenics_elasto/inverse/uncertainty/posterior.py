@@ -70,6 +70,7 @@ class Posterior:
     inner_spread: float | None = None  # how far apart the inner fit's minima at the answer are, where measured
     model_parts_s: dict[str, np.ndarray] | None = None  # the model's own error: part -> std in s (parts.py)
     mesh_shift_s: np.ndarray | None = None  # how far a degree higher would move the answer, where computed (parts.py)
+    prior_shift_s: np.ndarray | None = None  # how far a 100x weaker prior would move it, where measured (report.prior_shift)
 
     @property
     def method(self) -> str:
@@ -214,6 +215,8 @@ def posterior_record(post: Posterior) -> dict:
         out["inner_spread"] = post.inner_spread
     if post.mesh_shift_s is not None:
         out["mesh_shift"] = labelled(shift_in_units(post.is_E, post.mesh_shift_s))
+    if post.prior_shift_s is not None:
+        out["prior_shift"] = labelled(shift_in_units(post.is_E, post.prior_shift_s))
     if len(post.labels) > 1:
         out["correlation"] = post.correlation().tolist()
     return out

@@ -217,6 +217,25 @@ def test_a_mesh_check_that_does_not_finish_keeps_the_estimate(letter_source, let
     assert (tmp_path / "out" / "forces.csv").is_file()
 
 
+def test_ctrl_c_while_the_uncertainty_is_worked_out_keeps_the_answer(letter_source, letter_target, tmp_path,
+                                                                    monkeypatch):
+    """Ctrl-C in the profile-likelihood interval (minutes of fits on a hard 3D case) had
+    ended in a bare KeyboardInterrupt and lost the answer: now the answer is written,
+    interrupted, with the uncertainty noted as not computed (exit 130, as any Ctrl-C)."""
+    from fenics_elasto.inverse.uncertainty.answer import AnswerUncertainty
+
+    def stopped(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(AnswerUncertainty, "profile_likelihood_interval", stopped)
+    assert main(["estimate", str(letter_source), "--out", str(tmp_path / "out"),
+                 "--set", f"target.surface='{letter_target}'"]) == 130
+    result = json.loads((tmp_path / "out" / "result.json").read_text())
+    assert result["interrupted"] is True and abs(result["materials"]["letter"]["nu"] - 0.3) < 0.01
+    assert result["uncertainty"] == {"note": "not computed: interrupted while it was being worked out"}
+    assert (tmp_path / "out" / "forces.csv").is_file()
+
+
 def test_a_target_that_covers_part_of_its_group_is_refused(scenes, tmp_path):
     """The phantom's organ surfaces as simulated, the bladder's cut in half: half of
     the bladder's nodes have only the cut's edge to go to. Refused before any fit,
