@@ -286,13 +286,13 @@ def _matched_motion_warnings(params, fit, post) -> list[str]:
     return out
 
 
-# A half-rank shift worth a warning, in stds of the answer: the pelvis phantom's filled
-# state moved 1.8 sigma (E 50.0 -> 55.2 at rank 40 of 80, truth 50), its emptied state
-# 10 sigma (85 -> 179; truth 50, reached at rank 240).
 PRIOR_CHECK = 1.0  # prior_shift: measured where the prior is more than this many times the misfit at the answer
 PRIOR_WEAKER = 100.0  # ... with the prior this many times weaker
 PRIOR_SIGMAS = 2.0  # ... and said where the answer then moves by more than this many sigmas
 PRIOR_REACH = 40.0  # ... searched for within this many noise stds (the bar's move: 17)
+# A half-rank shift worth a warning, in stds of the answer: the pelvis phantom's filled
+# state moved 1.8 sigma (E 50.0 -> 55.2 at rank 40 of 80, truth 50), its emptied state
+# 10 sigma (85 -> 179; truth 50, reached at rank 240).
 RANK_SIGMAS = 4.0
 RANK_REACH = 8.0  # ... searched for within this many stds of the answer: far enough to tell a warning
 
