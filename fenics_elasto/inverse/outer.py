@@ -191,7 +191,7 @@ def _brent_on_surrogate(surrogate: SurrogateProfile, x0, known: list, xtol: floa
                         bounds) -> tuple[np.ndarray, int]:
     """The minimum of one constant on a rough Phi* by Brent's bounded search on values
     alone, to ``xtol``, in a bracket around the lowest of x0 and the ``known`` points
-    ((s, Phi*, slope) each; ``_bracket``). On a rough target the inner fits' minima
+    ((s, Phi*, slope) each; ``bracket``). On a rough target the inner fits' minima
     differ from one value to the next by more than the data's noise moves Phi*, so its
     slope is mostly that difference and a gradient method chases it: on the pelvis
     phantom with 0.5 mm of segmentation noise, bounded L-BFGS-B took 11 + 61 + 21 inner
@@ -206,13 +206,13 @@ def _brent_on_surrogate(surrogate: SurrogateProfile, x0, known: list, xtol: floa
         return values[x]
 
     value(x0[0])
-    low, high = _bracket(value, values, min(values, key=values.__getitem__), first_step, bounds)
+    low, high = bracket(value, values, min(values, key=values.__getitem__), first_step, bounds)
     if high - low > xtol:
         minimize_scalar(value, bounds=(low, high), method="bounded", options={"xatol": xtol})
     return np.array([min(values, key=values.__getitem__)]), len(values) - before
 
 
-def _bracket(value, values: dict, x: float, step: float, bounds) -> tuple[float, float]:
+def bracket(value, values: dict, x: float, step: float, bounds) -> tuple[float, float]:
     """(low, high) around a minimum of ``value`` (``values``: those known, x the lowest):
     on each side, steps from the lowest that double from ``step`` (at most 6) until a
     point above it lies there, or the bound."""

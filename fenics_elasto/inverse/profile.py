@@ -259,8 +259,8 @@ class FewerModes(SurrogateProfile):
 
 class WeakerPrior(SurrogateProfile):
     """Phi*(theta) with the Gauss-Newton prior's weight alpha divided by ``factor``: where
-    the answer goes when the prior, not the data, placed the walls' sliding along their
-    target (report.prior_shift). On the surrogate where there is one, else on full
+    the answer goes with less of what placed the walls' sliding along their target
+    (report.prior_shift). On the surrogate where there is one, else on full
     responses (a factorization each: the full force space of a small problem). Its fits
     stop at ``tol``."""
 
@@ -275,4 +275,4 @@ class WeakerPrior(SurrogateProfile):
             return super().value_and_gradient(s)
         fit = self.fit_inner.fit(self.profile.problem.response(self.params.to_theta(s), self.profile.basis))
         self.evaluations += 1
-        return fit.value, np.full(len(s), np.nan)  # values only: Brent's search (report.prior_shift)
+        return fit.value, np.full(len(s), np.nan)  # values only (report.prior_shift)
