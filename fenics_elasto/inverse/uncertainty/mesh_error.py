@@ -214,11 +214,12 @@ def _lifted_load(form, bc, V) -> PETSc.Vec:
 
 
 def mesh_shift(problem, lin: Linearisation, theta, evaluation,
-               prepared: HigherDegreeModel | None = None) -> np.ndarray:
-    """ds: how far s = (log E, nu) moves (first order, the controls following) when the
-    model's observed displacements are those of the higher-degree solve at the answer
-    (for a scene mesh_error_wanted says wants it). ``prepared``: HigherDegreeModel.ahead's,
-    used up here (else made now)."""
+               prepared: HigherDegreeModel | None = None) -> tuple[np.ndarray, float, float]:
+    """(ds, how far the observed points move, the largest observed displacement): ds is
+    how far s = (log E, nu) moves (first order, the controls following) when the model's
+    observed displacements are those of the higher-degree solve at the answer (for a
+    scene mesh_error_wanted says wants it). ``prepared``: HigherDegreeModel.ahead's, used
+    up here (else made now)."""
     scene = problem.scene
     start = time.perf_counter()
     E, nu = problem.params.materials(theta)
@@ -233,15 +234,18 @@ def mesh_shift(problem, lin: Linearisation, theta, evaluation,
     V, observe = model.V, model.observe
     assert observe is not None  # made with the problem's observation
     coarse = fem.Function(V)
-    parts = []  # rows one state after another
+    parts, motion = [], 0.0  # rows one state after another; the largest observed displacement
     for u, finer in zip(evaluation.fields, solutions):
         coarse.interpolate(u)
-        parts.append(observe(finer.x.array) - observe(coarse.x.array))
+        observed = observe(coarse.x.array)
+        parts.append(observe(finer.x.array) - observed)
+        motion = max(motion, float(np.abs(observed).max(initial=0.0)))
     eps = np.concatenate(parts)
     rows = problem.misfit.statistical_rows(evaluation.y, evaluation.residual)
     ds = offset_shift(lin, np.einsum("lkd,ld->lk", rows, eps).ravel())
     log.info(f"the source mesh's own error: a degree-{V.element.basix_element.degree} solve "
              f"at the answer moves the observed points by up to {np.abs(eps).max():.3g} "
              f"({time.perf_counter() - start:.1f} s)")
-    return ds
+    comm = scene.comm
+    return ds, float(comm.allreduce(np.abs(eps).max(initial=0.0), op=MPI.MAX)), float(comm.allreduce(motion, op=MPI.MAX))
 

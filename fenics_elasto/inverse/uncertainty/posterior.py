@@ -71,6 +71,7 @@ class Posterior:
     model_parts_s: dict[str, np.ndarray] | None = None  # the model's own error: part -> std in s (parts.py)
     mesh_shift_s: np.ndarray | None = None  # how far a degree higher would move the answer, where computed (parts.py)
     prior_shift_s: np.ndarray | None = None  # how far a 100x weaker prior would move it, where measured (report.prior_shift)
+    mesh_moves: tuple[float, float] | None = None  # the degree-3 solve's move of the observed points, and their motion
 
     @property
     def method(self) -> str:
