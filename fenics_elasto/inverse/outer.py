@@ -6,6 +6,7 @@ on the reduced-basis surrogate with its optimum solved in full.
 from __future__ import annotations
 
 import itertools
+from collections.abc import Callable
 
 import numpy as np
 from scipy.optimize import minimize, minimize_scalar
@@ -198,18 +199,24 @@ def _brent_on_surrogate(surrogate: SurrogateProfile, x0, known: list, xtol: floa
     fits (250 s in all) placing E to 1e-3 in log E, with sigma 0.18 there."""
     values = {float(s[0]): float(v) for s, v, _ in known}
     before = len(values)
+    value = remembered_values(surrogate, values)
+    value(x0[0])
+    low, high = bracket(value, values, min(values, key=values.__getitem__), first_step, bounds)
+    if high - low > xtol:
+        minimize_scalar(value, bounds=(low, high), method="bounded", options={"xatol": xtol})
+    return np.array([min(values, key=values.__getitem__)]), len(values) - before
 
+
+def remembered_values(surrogate: SurrogateProfile, values: dict) -> Callable[[float], float]:
+    """Phi* of one constant at s on ``surrogate``, each s fitted once (``values`` holds
+    those fitted, and those known before)."""
     def value(x) -> float:
         x = float(x)
         if x not in values:
             values[x] = float(surrogate.value_and_gradient(np.array([x]))[0])
         return values[x]
 
-    value(x0[0])
-    low, high = bracket(value, values, min(values, key=values.__getitem__), first_step, bounds)
-    if high - low > xtol:
-        minimize_scalar(value, bounds=(low, high), method="bounded", options={"xatol": xtol})
-    return np.array([min(values, key=values.__getitem__)]), len(values) - before
+    return value
 
 
 def bracket(value, values: dict, x: float, step: float, bounds) -> tuple[float, float]:

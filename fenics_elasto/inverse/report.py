@@ -11,7 +11,7 @@ import numpy as np
 from fenics_elasto.inverse.inner import InnerResult
 from fenics_elasto.model.scene import shift_in_units
 from fenics_elasto.util.logs import log
-from fenics_elasto.inverse.outer import BRACKET_STEP, bracket, surrogate_minimum
+from fenics_elasto.inverse.outer import BRACKET_STEP, bracket, remembered_values, surrogate_minimum
 from fenics_elasto.inverse.profile import FewerModes, WeakerPrior
 from fenics_elasto.inverse.uncertainty.posterior import Posterior
 from fenics_elasto.inverse.reduction.bases import bases_fit, missing_wall_motion
@@ -146,12 +146,7 @@ def prior_shift(estimator: Estimator, theta, std_s) -> np.ndarray | None:
     start = time.perf_counter()
     weaker = WeakerPrior(estimator.profile, PRIOR_WEAKER, estimator.options.inner_tol)
     values: dict[float, float] = {}
-
-    def value(x: float) -> float:
-        if x not in values:
-            values[x] = weaker.value_and_gradient(np.array([x]))[0]
-        return values[x]
-
+    value = remembered_values(weaker, values)
     s = float(estimator.params.to_s(theta)[0])
     value(s)
     bracket(value, values, s, PRIOR_SIGMAS * float(std_s[0]), estimator.params.s_bounds()[0])
@@ -164,15 +159,9 @@ def prior_shift(estimator: Estimator, theta, std_s) -> np.ndarray | None:
 def _minimum_with(estimator: Estimator, columns: np.ndarray, theta, std_s=None) -> tuple[np.ndarray, int]:
     """(s at the minimum of Phi* on the surrogate with each state's ``columns`` of the
     bases only, from the answer (dense algebra, no solve); the evaluations it took)."""
+    params = estimator.params
     # found to a quarter of sigma: its fits stop at inner_tol, as the scan's (Estimator._outer)
     fewer = FewerModes(estimator.profile, columns, estimator.options.inner_tol)
-    return _minimum_of(estimator, fewer, theta, std_s, not estimator.problem.misfit.rough())
-
-
-def _minimum_of(estimator: Estimator, surrogate, theta, std_s, smooth: bool) -> tuple[np.ndarray, int]:
-    """(s at the minimum of ``surrogate``'s Phi* near the answer theta, to a quarter of
-    ``std_s`` where given and within RANK_REACH of it; the evaluations it took)."""
-    params = estimator.params
     s = params.to_s(theta)
     xtol, step, bounds = estimator.xtol, BRACKET_STEP, params.s_bounds()
     if std_s is not None:  # surrogate_minimum stops at a tenth of xtol; a bracket made in sigmas
@@ -181,7 +170,8 @@ def _minimum_of(estimator: Estimator, surrogate, theta, std_s, smooth: bool) -> 
         step = max(step, float(np.min(std_s)))
         bounds = [(max(low, x - RANK_REACH * sd), min(high, x + RANK_REACH * sd)) if sd > 0 else (low, high)
                   for (low, high), x, sd in zip(bounds, s, std_s)]
-    x, evaluations = surrogate_minimum(surrogate, s, xtol, smooth=smooth, step=step, bounds=bounds)
+    x, evaluations = surrogate_minimum(fewer, s, xtol, smooth=not estimator.problem.misfit.rough(), step=step,
+                                       bounds=bounds)
     return np.asarray(x, float), evaluations
 
 

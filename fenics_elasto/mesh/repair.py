@@ -308,10 +308,11 @@ def _unstepped(shell: Shell) -> Shell:
 
 def _face_directions(points: np.ndarray, triangles: np.ndarray) -> int:
     """How many directions (to a hundredth) 95 % of the surface's area faces."""
-    normals = np.cross(points[triangles[:, 1]] - points[triangles[:, 0]], points[triangles[:, 2]] - points[triangles[:, 0]])
-    area = np.linalg.norm(normals, axis=1)
-    unit = np.round(normals / np.maximum(area, 1e-300)[:, None], 2)
-    _, which = np.unique(unit, axis=0, return_inverse=True)
+    from fenics_elasto.geometry.surface import Surface
+
+    surface = Surface(points, triangles)
+    area = np.linalg.norm(surface.area_normals, axis=1)
+    _, which = np.unique(np.round(surface.normals, 2), axis=0, return_inverse=True)
     shares = np.sort(np.bincount(which.ravel(), area))[::-1].cumsum() / max(area.sum(), 1e-300)
     return int(np.searchsorted(shares, 0.95) + 1)
 

@@ -19,6 +19,7 @@ import numpy as np
 from mpi4py import MPI
 from petsc4py import PETSc
 
+from fenics_elasto.model.dofs import DofLayout, times_block
 from fenics_elasto.model.solvers import DirectSolver, SolverError
 
 
@@ -41,8 +42,9 @@ class LockstepCG:
     """K_i X_i = B_i for the systems (K_i, B_i) (owned rows, dense), by CG preconditioned
     with ``base``'s factors, every column in lock step (the module's docstring)."""
 
-    def __init__(self, base: DirectSolver, systems: Sequence[tuple[PETSc.Mat, np.ndarray]], rtol: float):
-        self.base, self.rtol = base, rtol
+    def __init__(self, base: DirectSolver, dofs: DofLayout, systems: Sequence[tuple[PETSc.Mat, np.ndarray]],
+                 rtol: float):
+        self.base, self.dofs, self.rtol = base, dofs, rtol
         self.operators = [K for K, _ in systems]
         bounds = np.cumsum([0] + [B.shape[1] for _, B in systems])
         self.columns = [slice(a, b) for a, b in zip(bounds[:-1], bounds[1:])]
@@ -82,7 +84,8 @@ class LockstepCG:
 
     def _preconditioned(self, R: np.ndarray) -> np.ndarray:
         """F^-1 R through the base's factors: one block back-solve of every column."""
-        B, Z = self._dense(R), self._dense(None, R.shape[1])
+        B, Z = self.dofs.dense(R.shape[1]), self.dofs.dense(R.shape[1])
+        B.getDenseArray()[:] = R
         self.base.apply_factors(B, Z)
         out = Z.getDenseArray().copy()
         for M in (B, Z):
@@ -93,23 +96,8 @@ class LockstepCG:
         """K_i P_i for every system's columns."""
         out = np.empty_like(P)
         for K, columns in zip(self.operators, self.columns):
-            M = self._dense(P[:, columns])
-            Q = K.matMult(M)
-            out[:, columns] = Q.getDenseArray()
-            for A in (M, Q):
-                A.destroy()
+            out[:, columns] = times_block(K, np.ascontiguousarray(P[:, columns]))
         return out
-
-    def _dense(self, values: np.ndarray | None, width: int | None = None) -> PETSc.Mat:
-        """A dense PETSc block in K's row layout holding ``values`` (or zeros, ``width`` wide)."""
-        width = values.shape[1] if values is not None else width
-        owned = self.B.shape[0]
-        M = PETSc.Mat().createDense(((owned, PETSc.DETERMINE), (PETSc.DECIDE, width)), comm=self.base.K.getComm())
-        M.setUp()
-        if values is not None:
-            M.getDenseArray()[:] = values
-        M.assemble()
-        return M
 
     def _dots(self, A: np.ndarray, B: np.ndarray) -> np.ndarray:
         return self.comm.allreduce(np.einsum("ij,ij->j", A, B), op=MPI.SUM)

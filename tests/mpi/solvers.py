@@ -36,7 +36,7 @@ if method == "direct":
     b = f.x.array[:owned].copy()
     b[forward.clamped] = 0.0
     systems = [(model.solvers.stiffness(forward.coefficients(t)[0], forward.clamped), b[:, None]) for t in (3 * theta, theta / 3)]
-    solutions, _ = LockstepCG(factors, systems, 1e-8).solve(maxiter=50)
+    solutions, _ = LockstepCG(factors, model.dofs, systems, 1e-8).solve(maxiter=50)
     lockstep[:owned] = np.hstack(solutions)
 nodes = forward.model.dofs.node_set(["prostate_surface"])
 rows = nodes.dofs(forward.model.dofs.bs).ravel()

@@ -294,7 +294,7 @@ def _lockstep(problem, first: np.ndarray, levels: list[tuple[np.ndarray, np.ndar
         return None
     systems = [(model.solvers.stiffness(c, forward.clamped), rhs) for c, (_, rhs) in zip(coefficients, levels)]
     try:  # the stiffness matrices go whatever happens
-        solutions, steps = LockstepCG(base, systems, EXAMPLE_RTOL).solve(steps, budget)
+        solutions, steps = LockstepCG(base, model.dofs, systems, EXAMPLE_RTOL).solve(steps, budget)
     except SolverError as why:
         log.info(f"  {why}: each level factorized instead")
         return None

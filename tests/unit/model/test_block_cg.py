@@ -38,7 +38,7 @@ def test_levels_on_one_factorization_equal_their_own_direct_solves(phantom_p1):
     clamped, (base, *levels) = _systems(phantom_p1, model, [1.0, 8.0, 0.15])
     factors = model.factorize(base[0], clamped)
     rtol = 1e-8
-    solutions, steps = LockstepCG(factors, [(K, B) for _, K, B in levels], rtol).solve(maxiter=100)
+    solutions, steps = LockstepCG(factors, model.dofs, [(K, B) for _, K, B in levels], rtol).solve(maxiter=100)
     assert model.factorizations == 1
     spread = max(coefficient_spread(c, base[0]) for c, _, _ in levels)
     assert 2 <= steps <= cg_steps_bound(spread, rtol)  # the bound holds, and it is not a direct solve in disguise
@@ -53,7 +53,7 @@ def test_too_few_steps_are_an_error(phantom_p1):
     clamped, (base, level) = _systems(phantom_p1, model, [1.0, 8.0])
     factors = model.factorize(base[0], clamped)
     with pytest.raises(SolverError, match="stopped after 2 steps above rtol"):
-        LockstepCG(factors, [level[1:]], 1e-10).solve(maxiter=2)
+        LockstepCG(factors, model.dofs, [level[1:]], 1e-10).solve(maxiter=2)
 
 
 def _direct(model, c, clamped, b) -> np.ndarray:
