@@ -40,3 +40,12 @@ def test_no_long_classes_or_functions():
             if isinstance(node, ast.ClassDef) and size > 150 or isinstance(node, ast.FunctionDef) and size > 60:
                 long.append(f"{path.relative_to(PACKAGE)}:{node.name} ({size} lines)")
     assert not long, long
+
+
+@pytest.mark.xdist_group("grouping-check")
+def test_grouped_tests_share_a_worker(request):
+    """Under make test's --dist loadgroup, an xdist_group test carries its group in its node
+    id; pytest 9.2 with pytest-xdist 3.8 dropped it silently, and the family3d tests went to
+    both workers, each making the truth (~65 s). Pin pytest where the group survives."""
+    if request.config.getvalue("loadgroup"):
+        assert request.node.nodeid.endswith("@grouping-check"), f"{request.node.nodeid}: pin pytest (constraints.txt)"
