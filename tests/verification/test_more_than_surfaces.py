@@ -380,3 +380,34 @@ def test_a_force_measured_in_one_state_scales_every_state(tmp_path, two_cases):
                       bases=bases)
     for region in ("matrix", "inclusion"):
         assert api.values[f"{region}.E"] == pytest.approx(result["materials"][region]["E"], rel=1e-6), api.values
+
+
+FIDUCIAL_NOISE = 0.005  # about 2 % of the fiducials' motion
+
+
+def test_stated_landmark_noise_sets_the_interval(tmp_path, two_cases):
+    """Six fiducials with Gaussian noise beside exact outlines, their noise stated as
+    landmark_noise: sigma counts that noise (no landmark row credited better than stated)
+    whatever the near-exact outlines' residual says, so each draw's sigma is about the
+    draws' own spread. Measured (three draws): E 37.8, 36.1, 44.8, sigma 4.3-6.0; before,
+    with the scale from the residual, sigma 1.7, 2.4 and 4.6 (a user's 3D ball: E 3.736,
+    95 % 3.623-3.853, for 4)."""
+    from independent import write_landmarks
+
+    case_a, _, bases = two_cases
+    inside = np.array([[0.3, 0.2], [-0.4, 0.1], [0.1, -0.5], [-0.2, -0.3], [0.8, 0.6], [-0.7, -0.6]])
+    moved = inside + inclusion_displacement(inside, RATIO)
+    answers = []
+    for seed in (1, 2, 3):
+        noisy = moved + np.random.default_rng(seed).normal(0.0, FIDUCIAL_NOISE, moved.shape)
+        fiducials = write_landmarks(tmp_path / f"fiducials_{seed}.csv", inside, noisy)
+        result = estimate(tmp_path, f"draw_{seed}", case_a["problem"], "boundary.matched=['outline']",
+                          f"reduction={{bases='{bases}'}}",
+                          f"target={{surfaces={{outline='{case_a['outline']}'}}, landmarks='{fiducials}', "
+                          f"landmark_noise={FIDUCIAL_NOISE}}}")
+        u = result["uncertainty"]
+        assert u["noise"] == "the landmarks' stated noise", u
+        answers.append((result["materials"]["inclusion"]["E"], u["inclusion.E"]["std"], *u["inclusion.E"]["ci95"]))
+    E, std, low, high = np.array(answers).T
+    assert np.all(low < E_TRUE) and np.all(E_TRUE < high), answers
+    assert std.min() > 0.6 * E.std(ddof=1), answers

@@ -40,8 +40,11 @@ class AnswerUncertainty:
 
     def posterior(self, result: InnerResult | None = None) -> Posterior | None:
         noise = self.problem.states.noise  # [target] noise, or the states' smallest (states.py)
-        floor = self.problem.misfit.roughness() if noise is None else 0.0
-        return posterior_at(self.profile, result or self.profile.best(), noise, floor)
+        misfit = self.problem.misfit
+        floors = {"the target's roughness": misfit.roughness(), "the landmarks' stated noise": misfit.stated_floor()}
+        floor_from = max(floors, key=floors.__getitem__)
+        floor = floors[floor_from] if noise is None else 0.0
+        return posterior_at(self.profile, result or self.profile.best(), noise, floor, floor_from)
 
     def linearise_answer(self, theta, best: InnerResult) -> None:
         """The L-BFGS inner solvers keep no response of the controls: the answer's

@@ -58,7 +58,7 @@ class Posterior:
     s: np.ndarray  # the optimum in s = (log E, nu)
     covariance: np.ndarray  # of s
     noise_std: float
-    noise_source: str  # "given" | "the residual" | "the target's roughness"
+    noise_source: str  # "given" | "the residual" | "the target's roughness" | "the landmarks' stated noise"
     dof: float  # m - p_eff
     is_E: np.ndarray
     separable: np.ndarray  # per constant: the share of its effect the controls cannot mimic (0: none)
@@ -199,7 +199,8 @@ def posterior_record(post: Posterior) -> dict:
     out["separable"] = labelled(post.separable)
     out["noise_std"] = post.noise_std
     out["noise"] = {"given": "given", "the residual": "estimated from the residual",
-                    "the target's roughness": "the target's roughness"}[post.noise_source]
+                    "the target's roughness": "the target's roughness",
+                    "the landmarks' stated noise": "the landmarks' stated noise"}[post.noise_source]
     out["residual_noise_std"] = post.residual_std
     out["interval"] = post.method
     out["dof"] = post.dof
@@ -223,7 +224,8 @@ def posterior_record(post: Posterior) -> dict:
     return out
 
 
-def posterior_at(profile, result, noise: float | None = None, floor: float = 0.0) -> Posterior | None:
+def posterior_at(profile, result, noise: float | None = None, floor: float = 0.0,
+                 floor_from: str = "the target's roughness") -> Posterior | None:
     """The posterior at one of the profile's solves, where it has a Linearisation (every
     Gauss-Newton solve; with L-BFGS the answer, once Estimator.linearise_answer made
     one); None otherwise."""
@@ -232,7 +234,7 @@ def posterior_at(profile, result, noise: float | None = None, floor: float = 0.0
         return None
     s = next(s for s, r, _ in profile.solved if r is result)
     params = profile.params
-    post = laplace(lin, params.labels, s, params.is_E, noise, floor)
+    post = laplace(lin, params.labels, s, params.is_E, noise, floor, floor_from)
     post.patch_covariance = patch_covariance(lin, result.evaluation.y, profile.problem.states.count)
     return post
 
@@ -256,9 +258,11 @@ predicts -0.85 %). None
     return delta, delta * offset_shift(lin, np.einsum("lkd,ld->lk", rows, dr).ravel())
 
 
-def laplace(lin: Linearisation, labels, s, is_E, noise: float | None = None, floor: float = 0.0) -> Posterior:
+def laplace(lin: Linearisation, labels, s, is_E, noise: float | None = None, floor: float = 0.0,
+            floor_from: str = "the target's roughness") -> Posterior:
     """The posterior of s from a Linearisation at the optimum (noise: known std or None;
-    ``floor``: the noise the targets themselves show, which the residual underestimates)."""
+    ``floor``: the least noise std the data allow, which the residual may underestimate --
+    the targets' roughness, or what stated landmark noise asks -- named by ``floor_from``)."""
     B, schur = lin.profiled()
     # tr(A H^-1 A^T), the fitted parameters: the controls' share plus tr(S^-1 B^T B)
     hat = lin.fitted_controls() + np.trace(np.linalg.lstsq(schur, B.T @ B, rcond=None)[0])
@@ -268,7 +272,7 @@ def laplace(lin: Linearisation, labels, s, is_E, noise: float | None = None, flo
     covariance = noise_std**2 * _inverse(schur)
     own = lin.sensitivity()
     separable = np.diag(schur) / np.where(own > 0, own, 1.0)
-    source = "given" if noise is not None else "the target's roughness" if floor > residual_std else "the residual"
+    source = "given" if noise is not None else floor_from if floor > residual_std else "the residual"
     return Posterior(list(labels), np.asarray(s, float), covariance, noise_std, source, float(dof),
                      np.asarray(is_E, bool), separable, residual_std)
 
