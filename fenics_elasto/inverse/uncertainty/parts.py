@@ -31,7 +31,7 @@ def add_model_error(problem, post: Posterior, theta, evaluation, lin, fit: dict 
     parts = {"mesh": np.zeros(len(post.labels)), "bases": np.zeros(len(post.labels))}
     if fit and "shift_if_enriched_s" in fit:
         parts["bases"] = np.abs(np.asarray(fit["shift_if_enriched_s"], float))
-    if mesh_error_wanted(problem.scene):
+    if mesh_error_wanted(problem):
         ds, moved, motion = mesh_shift(problem, lin, theta, evaluation, prepared)
         parts["mesh"] = np.where(np.isfinite(ds), np.abs(ds), 0.0)
         post.mesh_shift_s = np.asarray(ds, float)
