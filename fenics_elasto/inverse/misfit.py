@@ -27,6 +27,7 @@ import numpy as np
 from fenics_elasto.config.schema import suggestion
 from fenics_elasto.util.errors import UserError, require
 from fenics_elasto.util.logs import log
+from fenics_elasto.geometry.phong import finer_where_faceted
 from fenics_elasto.geometry.surface import Surface
 from fenics_elasto.files.images import read_label_image
 from fenics_elasto.inverse.displacement_field import DisplacementField
@@ -58,6 +59,7 @@ class FieldTerm(PointTerm):
     standing for a cube of side ``cell`` (displacement_field.observed_samples)."""
 
     cell: float = 0.0
+    coverage: float | None = None  # an image's: the share of the body its kept voxels fill
 
 
 class Unobserved:
@@ -335,8 +337,9 @@ def smooth_if_rough(surface: Surface, name: str, smooth: str) -> Surface:
         smooth_surface = smoothed(surface)
         log.info(f"note: {name}: rough (noise ~{roughness(surface):.3g}, mean edge {surface.mean_edge:.3g}): "
                  f"smoothed before matching (noise left ~{noise(smooth_surface):.3g}); [target] smooth = \"off\" keeps it")
-        return smooth_surface
-    return surface
+        return finer_where_faceted(smooth_surface, name)
+    # A rough surface's own normals are its noise: no smooth surface to lift it onto.
+    return surface if is_rough(surface) else finer_where_faceted(surface, name)
 
 
 def check_surface_groups(matched: list[str], given, where: str, noun: str = "surface") -> None:
@@ -383,7 +386,7 @@ def build_misfit(scene, node_groups: np.ndarray, target: TargetData, before: int
                        landmark_weight(spec, surfaces)))
     if target.displacement is not None:
         field = target.displacement
-        blocks.append((len(field.points), FieldTerm(field.points + field.vectors, cell=field.cell),
+        blocks.append((len(field.points), FieldTerm(field.points + field.vectors, cell=field.cell, coverage=field.coverage),
                        field_weight(spec, surfaces)))
     if after:
         blocks.append((after, Unobserved(), 0.0))
