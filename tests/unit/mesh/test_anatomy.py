@@ -670,3 +670,17 @@ def test_the_published_kidney_gets_through(tmp_path, capsys):
     assert volumes["tumour"] == pytest.approx(2600.0 + 2100.0, rel=0.015)  # the issue's 2.6 and 2.1 cm3
     whole = pv.read(KIDNEY / "kidney.vtk").connectivity("largest").extract_surface(algorithm=None)
     assert volumes["kidney"] + volumes["tumour"] == pytest.approx(whole.volume, rel=0.01)
+
+
+def test_a_patch_plane_a_hair_off_a_face_is_refused():
+    """A plane 1e-6 above a block's bottom face cuts its sides into a strip gmsh cannot
+    mesh: a user's scene ran at 100 % CPU past ten minutes, deaf to Ctrl-C. Refused in
+    one line; a plane 1 off the face is not."""
+    from fenics_elasto.mesh.anatomy import Patch, _refuse_a_sliver, box_shell
+    from fenics_elasto.util.errors import UserError
+
+    body = box_shell(np.array([-12.0, -10, -10]), np.array([12.0, 10, 10]), "tissue")
+    down = np.array([0.0, 0.0, -1.0])
+    _refuse_a_sliver(body, Patch("bottom", np.array([0.0, 0.0, -9.0]), down), "spec: patches.bottom", "mm")
+    with pytest.raises(UserError, match=r"spec: patches.bottom: its plane passes 1e-06 mm from .* too thin to mesh"):
+        _refuse_a_sliver(body, Patch("bottom", np.array([0.0, 0.0, -10 + 1e-6]), down), "spec: patches.bottom", "mm")
