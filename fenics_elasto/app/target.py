@@ -109,6 +109,9 @@ class Target:
         require(measured_force is None or isinstance(measured_force, Mapping),
                 "Target.measured_force: expected {group: {\"value\": [...], \"noise\": std}}, "
                 f"got {type(measured_force).__name__}")
+        for group, force in (measured_force or {}).items():
+            require(isinstance(force, Mapping), f"Target.measured_force[{group!r}]: expected {{\"value\": [...], "
+                                                f"\"noise\": std}}, got {type(force).__name__} {force!r}")
         self.measured_force = None if measured_force is None else {str(g): dict(f) for g, f in measured_force.items()}
         if isinstance(surfaces, Mapping):
             require(len(surfaces) > 0, "Target.surfaces: an empty mapping; give {group: surface, ...}")

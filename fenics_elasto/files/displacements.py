@@ -62,12 +62,17 @@ def _point_field(path: Path, gdim: int) -> tuple[np.ndarray, np.ndarray]:
         raise UserError(f"{path}: cannot read a displacement field ({type(err).__name__})") from None
     arrays = {name: np.asarray(mesh.point_data[name]) for name in mesh.point_data.keys()}
     vectors = {name: a for name, a in arrays.items() if a.ndim == 2 and a.shape[1] in (2, 3)}
-    require(len(vectors) == 1, f"{path}: expected one vector array on the points, found "
-            + (f"{len(vectors)} ({', '.join(vectors)})" if vectors else "none"))
+    others = ", ".join(f"{name} of {a.shape[1] if a.ndim == 2 else 1} component(s)" for name, a in arrays.items())
+    require(len(vectors) == 1, f"{path}: expected one vector array (2 or 3 components) on the points, found "
+            + (f"{len(vectors)} ({', '.join(vectors)})" if vectors else f"none ({others or 'no arrays'})"))
     (values,) = vectors.values()
     flat = values.shape[1] >= gdim and not np.any(values[:, gdim:])  # 2D fields may carry a zero z
     require(flat, f"{path}: its vectors have {values.shape[1]} components, the scene is {gdim}D")
-    return np.asarray(mesh.points, float)[:, :gdim], values[:, :gdim].astype(float)
+    points = np.asarray(mesh.points, float)
+    off = np.abs(points[:, gdim:]).max(initial=0.0)
+    require(off <= 1e-9 * max(float(np.ptp(points, axis=0).max(initial=0.0)), 1e-300),
+            f"{path}: its points lie up to {off:.3g} off the 2D scene's plane z = 0 (a slice from another plane?)")
+    return points[:, :gdim], values[:, :gdim].astype(float)
 
 
 def _image_field(path: Path, suffix: str) -> tuple[np.ndarray, np.ndarray]:

@@ -167,10 +167,10 @@ def landmark_arrays(source, observed, name: str = "landmarks") -> tuple[np.ndarr
     except (TypeError, ValueError) as err:
         raise UserError(f"{name}: source and observed points must be numeric arrays ({err})") from None
     require(source.ndim == 2 and source.shape[1] in (2, 3) and len(source) > 0,
-            f"{name}: source points must be an (n, 2) or (n, 3) array, got shape {source.shape}")
+            f"{name}: the first array (the points) must be (n, 2) or (n, 3), got shape {source.shape}")
     require(observed.shape == source.shape,
             f"{name}: observed points {observed.shape} must have the shape of the source points {source.shape}")
-    require(np.isfinite(source).all() and np.isfinite(observed).all(), f"{name}: landmarks contain NaN or infinite values")
+    require(np.isfinite(source).all() and np.isfinite(observed).all(), f"{name}: NaN or infinite values")
     return source, observed
 
 

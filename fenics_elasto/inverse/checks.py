@@ -184,6 +184,9 @@ NOISE_RATIO = 3.0  # a final rms distance above this x [target] noise fits badly
 # weighed alike, E dragged to its bound; 186x weighed by their residuals, E within 0.1 %;
 # two clean outlines: within 2x)
 STATES_SPREAD = 10.0
+# A field image whose voxels inside the body fill less than this share of it is said: most
+# of the image fell outside, as where its affine is wrong.
+FIELD_COVERAGE = 0.5
 
 
 def check_extent(problem: InverseProblem) -> list[str]:
@@ -195,7 +198,35 @@ def check_extent(problem: InverseProblem) -> list[str]:
     out = []
     for misfit, spec in zip(problem.states.misfits, problem.states.specs):
         out += _extent_warnings(problem, misfit, spec)
+    return out + _repeated_states(problem)
+
+
+def _repeated_states(problem: InverseProblem) -> list[str]:
+    """States whose targets hold the very same data (a copied state, or two names for one
+    scan): counted twice, one scan narrows the interval as a second one would (a user's
+    pair of one scan: 4.61-5.37 against 4.47-5.56 alone)."""
+    seen: dict[bytes, str] = {}
+    out = []
+    for name, misfit in zip(problem.states.names, problem.states.misfits):
+        key = _fingerprint(misfit)
+        if key in seen:
+            out.append(f"states {seen[key]} and {name} observe the same data: counted twice, one scan narrows the "
+                       "interval as if it were two; give each state its own scan")
+        seen.setdefault(key, name)
     return out
+
+
+def _fingerprint(misfit) -> bytes:
+    """A digest of every surface's and point's coordinates a state's misfit compares with."""
+    import hashlib
+
+    digest = hashlib.sha1()
+    for term in misfit.terms:
+        for surface in getattr(term, "surfaces", []):
+            digest.update(surface.points.tobytes())
+        if isinstance(term, PointTerm):
+            digest.update(term.points.tobytes())
+    return digest.digest()
 
 
 def _extent_warnings(problem: InverseProblem, misfit, spec: dict) -> list[str]:
@@ -240,6 +271,9 @@ def _field_warnings(misfit, residual: np.ndarray) -> list[str]:
     for rows, term in zip(misfit.slices, misfit.terms):
         if not isinstance(term, FieldTerm) or term.cell <= 0:
             continue
+        if term.coverage is not None and term.coverage < FIELD_COVERAGE:
+            out.append(f"the displacement field image's voxels inside the body fill {100 * term.coverage:.2g} % of it: "
+                       "is its affine right (an LPS/RAS slip negates x and y) and does it cover the body?")
         length = correlated_over(term.points, residual[rows], term.cell)
         if length is not None:
             out.append(f"the displacement field's residual is shared over cubes of {length:.3g} ({length / term.cell:.0f}x "

@@ -138,6 +138,8 @@ def test_a_force_against_the_motion_is_refused_and_one_out_of_scale_said(tmp_pat
     ("state_unknown_group", "['bladder'] not in boundary.matched"),
     ("state_twice", "is given twice"),
     ("state_noise_partial", "stated for some states but not for ['b']"),
+    ("field_off_the_plane", "off the 2D scene's plane z = 0"),  # was read, its z dropped
+    ("field_four_components", "found none (displacement of 4 component(s))"),
 ])
 def test_bad_extra_data_is_one_line(tmp_path, capsys, case, expected):
     problem = inclusion(tmp_path / "case", RATIO, source_size=SOURCE_SIZE)["problem"]
@@ -148,6 +150,13 @@ def test_bad_extra_data_is_one_line(tmp_path, capsys, case, expected):
         points = points * 10.0 + 100.0  # centimetres read as millimetres, shifted: no overlap
     vectors = 1000.0 * inclusion_displacement(points, RATIO) if case == "field_vectors_in_mm" else np.zeros_like(points)
     field = write_field(tmp_path / "field.vtp", points, vectors)
+    if case in ("field_off_the_plane", "field_four_components"):
+        import pyvista as pv
+
+        off = case == "field_off_the_plane"
+        cloud = pv.PolyData(np.c_[points, np.full(len(points), 5.0 if off else 0.0)])
+        cloud["displacement"] = np.zeros((len(points), 3 if off else 4))
+        cloud.save(field)
     outline = f"{{surfaces={{outline='{problem.parent / 'target_outline.vtp'}'"
     sets = {"force_not_loaded": ["boundary.measured_force.bottom={value=[0.0, 1.0], noise=0.1}"],
             "state_unknown_group": ["boundary.matched=['outline']",
@@ -159,6 +168,8 @@ def test_bad_extra_data_is_one_line(tmp_path, capsys, case, expected):
             "state_twice": ["boundary.matched=['outline']",
                             f"states=[{{name='a', target={outline}}}}}}}, {{name='a', target={outline}}}}}}}]"],
             "field_outside": [f"target={{displacement='{field}'}}"],
+            "field_off_the_plane": [f"target={{displacement='{field}'}}"],
+            "field_four_components": [f"target={{displacement='{field}'}}"],
             "field_elsewhere": [f"target={{displacement='{field}'}}"],
             "field_vectors_in_mm": [f"target.displacement='{field}'"]}[case]
     args = ["estimate", str(problem), "--out", str(tmp_path / "out")]
@@ -411,3 +422,13 @@ def test_stated_landmark_noise_sets_the_interval(tmp_path, two_cases):
     E, std, low, high = np.array(answers).T
     assert np.all(low < E_TRUE) and np.all(E_TRUE < high), answers
     assert std.min() > 0.6 * E.std(ddof=1), answers
+
+
+def test_one_scan_given_as_two_states_is_said(tmp_path, two_cases):
+    """Two states observing the very same data count one scan twice: said, by name."""
+    case_a, _, bases = two_cases
+    outline = f"{{surfaces={{outline='{case_a['outline']}'}}}}"
+    result = estimate(tmp_path, "twice", case_a["problem"], "boundary.matched=['outline']", f"reduction={{bases='{bases}'}}",
+                      f"states=[{{name='first', target={outline}}}, {{name='again', target={outline}}}]")
+    assert any(w.startswith("states first and again observe the same data") for w in result["warnings"]), \
+        result["warnings"]

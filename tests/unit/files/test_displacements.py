@@ -65,7 +65,7 @@ def test_points_with_one_vector_array(tmp_path):
     assert np.allclose(read_points, points) and np.allclose(vectors, field_at(points))
     cloud["v"] = field_at(points)  # two vector arrays: which one?
     cloud.save(tmp_path / "two.vtp")
-    with pytest.raises(UserError, match="one vector array on the points, found 2"):
+    with pytest.raises(UserError, match=r"one vector array \(2 or 3 components\) on the points, found 2"):
         read_displacement(tmp_path / "two.vtp", 3)
 
 

@@ -93,3 +93,17 @@ def test_samples_on_the_bodys_surface_count_as_inside(space_and_u):
     beyond = np.vstack([inside, [[1.2, 0.5, 0.5]]])
     with pytest.raises(UserError, match="1 of 201 points lie outside the body"):
         observed_samples(DisplacementField(beyond, quadratic(beyond), "field.vtp"), mesh, None)
+
+
+def test_an_image_over_the_body_covers_it_and_a_slipped_one_does_not():
+    """The share of the body an image's kept voxels fill: about 1 for a grid over the
+    whole body (a 2 x 1 x 1 box, voxels of 0.05 across it and 0.2 of air around), a
+    sliver's for the same grid with x and y negated about a corner (an LPS/RAS slip)."""
+    mesh = dolfinx.mesh.create_box(MPI.COMM_WORLD, [[0.0, 0.0, 0.0], [2.0, 1.0, 1.0]], [4, 2, 2])
+    axes = [np.arange(-0.2, high + 0.2 + 1e-9, 0.05) for high in (2.0, 1.0, 1.0)]
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    inside = np.all((grid >= 0) & (grid <= [2.0, 1.0, 1.0]), axis=1)
+    assert displacement_field._coverage(grid, int(inside.sum()), mesh) == pytest.approx(1.0, rel=0.15)
+    slipped = grid * [-1.0, -1.0, 1.0]
+    kept = np.all((slipped >= 0) & (slipped <= [2.0, 1.0, 1.0]), axis=1)
+    assert displacement_field._coverage(slipped, int(kept.sum()), mesh) < 0.05
