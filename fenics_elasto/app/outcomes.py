@@ -143,6 +143,6 @@ class Estimate(Solution):
         if not offset:
             return []
         # result.json holds the shifts in units (relative for E); offset_lines takes them in s = (log E, nu)
-        shifts = [(label, np.log1p(shift) if label.endswith(".E") else shift, label.endswith(".E"))
+        shifts = [(label, np.log(max(1.0 + shift, 1e-300)) if label.endswith(".E") else shift, label.endswith(".E"))
                   for label, shift in offset["shift"].items() if shift is not None]
         return ["  " + line for line in offset_lines(offset["offset"], shifts)]

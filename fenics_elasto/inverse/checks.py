@@ -308,17 +308,20 @@ def _distance_warnings(misfit, spec: dict, distances: dict) -> list[str]:
     surfaces = [s for term in misfit.terms for s in getattr(term, "surfaces", [])]
     for kind, distance in distances.items():
         hint = "check its units, frame and the set-up"
-        if kind == "field" and spec.get("displacement_noise"):
-            scale, what = NOISE_RATIO * spec["displacement_noise"], f"{NOISE_RATIO:g} x target.displacement_noise"
-            hint = FIELD_HINT
-        elif spec.get("noise"):
-            scale, what = NOISE_RATIO * spec["noise"], f"{NOISE_RATIO:g} x target.noise"
+        # each kind against its own stated noise: the landmarks' against landmark_noise, not the surfaces'
+        own = {"field": "displacement_noise", "landmarks": "landmark_noise"}.get(kind, "noise")
+        stated = own if spec.get(own) else "noise" if spec.get("noise") else None
+        if stated is not None:
+            scale = NOISE_RATIO * spec[stated]
+            what = f"{NOISE_RATIO:g} x target.{stated} ({NOISE_RATIO:g} x {spec[stated]:.3g})"
+            hint = FIELD_HINT if kind == "field" else hint
         elif kind == "surface" and surfaces:
-            scale, what = float(np.mean([s.mean_edge for s in surfaces])), "the target's mean edge length"
+            scale = float(np.mean([s.mean_edge for s in surfaces]))
+            what = f"the target's mean edge length ({scale:.3g})"
         else:
             continue
         if distance["rms"] > scale:
-            out.append(f"the final rms {kind} distance {distance['rms']:.3g} is above {what} ({scale:.3g}): "
+            out.append(f"the final rms {kind} distance {distance['rms']:.3g} is above {what}: "
                        f"the model does not fit the target; {hint}")
     return out
 

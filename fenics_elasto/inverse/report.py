@@ -49,8 +49,9 @@ def describe_offset(post: Posterior) -> list[str]:
 def offset_lines(delta: float, shifts) -> list[str]:
     """The line of ``describe_offset`` from the offset ``delta`` and (label, shift in s,
     is E) per constant (result.json's target_offset holds the shifts in units)."""
-    moved = [f"{label} by {100 * np.expm1(d):+.2g} %" if is_E else f"{label} by {d:+.2g}"
-             for label, d, is_E in shifts if np.isfinite(d)]
+    # first order: past a factor e either way a percentage reads as nonsense (-1e+02 %)
+    moved = [(f"{label} by {100 * np.expm1(d):+.2g} %" if abs(d) <= 1 else f"{label} by a factor {np.exp(d):.2g}")
+             if is_E else f"{label} by {d:+.2g}" for label, d, is_E in shifts if np.isfinite(d)]
     if not moved:
         return []
     return [f"a target {delta:.3g} bigger all round (a tenth of its edge: a segmentation bias no residual shows) "

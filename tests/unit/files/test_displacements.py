@@ -117,5 +117,27 @@ def test_a_field_fitting_far_above_its_noise_says_where_to_look():
     misfit = SimpleNamespace(terms=[])
     spec = {"displacement_noise": 0.002}
     (warning,) = _distance_warnings(misfit, spec, {"field": {"rms": 0.0327}})
-    assert "above 3 x target.displacement_noise (0.006)" in warning and 'displacement_frame = "itk"' in warning
+    assert "above 3 x target.displacement_noise (3 x 0.002)" in warning and 'displacement_frame = "itk"' in warning
     assert _distance_warnings(misfit, spec, {"field": {"rms": 0.0027}}) == []  # the right frame: 1.35x its noise
+
+
+def test_landmarks_are_judged_by_their_own_noise():
+    """A user's fiducials fitted at 0.0027 with landmark_noise 0.002 were said not to fit
+    against 3 x target.noise (0.0004, the surfaces'); against their own noise they fit."""
+    from types import SimpleNamespace
+
+    from fenics_elasto.inverse.checks import _distance_warnings
+
+    misfit = SimpleNamespace(terms=[])
+    spec = {"noise": 0.0004, "landmark_noise": 0.002}
+    assert _distance_warnings(misfit, spec, {"landmarks": {"rms": 0.0027}}) == []
+    (warning,) = _distance_warnings(misfit, spec, {"landmarks": {"rms": 0.0081}})
+    assert "above 3 x target.landmark_noise (3 x 0.002)" in warning
+
+
+def test_a_first_order_shift_past_a_factor_e_is_a_factor():
+    """'would move core.E by -1e+02 %' said nothing: a shift of E past a factor e reads as one."""
+    from fenics_elasto.inverse.report import offset_lines
+
+    (line,) = offset_lines(0.001, [("core.E", -8.0, True), ("rubber.E", 0.5, True), ("rubber.nu", 0.01, False)])
+    assert "core.E by a factor 0.00034" in line and "rubber.E by +65 %" in line and "rubber.nu by +0.01" in line
