@@ -211,9 +211,19 @@ def _check_direction(problem, predicted: dict[str, np.ndarray], measured: list[M
         return
     against = [m for m in measured if float(predicted[m.label] @ m.value) < 0] or measured
     m = against[0]
-    raise UserError(f"{problem.scene.path}: {m.key}: the measured force {_vector(m.value)} points against the force "
-                    f"the fitted motion needs through {m.group} ({_vector(predicted[m.label])} at the reference's E; "
-                    f"scale {s:.3g}): give the force the group applies to the body, not its reaction on the probe")
+    need = predicted[m.label]
+    cosine = float(need @ m.value) / max(float(np.linalg.norm(need) * np.linalg.norm(m.value)), 1e-300)
+    if cosine < -PERPENDICULAR:
+        how, advice = "points against", "give the force the group applies to the body, not its reaction on the probe"
+    else:  # a zero force, or one across the motion: a frame, an axis order or a group slip, not a sign
+        how, advice = "is zero or across", "check the force's frame, axis order and group"
+    raise UserError(f"{problem.scene.path}: {m.key}: the measured force {_vector(m.value)} {how} the force the fitted "
+                    f"motion needs through {m.group} ({_vector(need)} at the reference's E; scale {s:.3g}): {advice}")
+
+
+# _check_direction: a measured force within this cosine of perpendicular to the force the
+# fitted motion needs is "across" it (a user's force turned 90 degrees read "points against")
+PERPENDICULAR = 0.5
 
 
 def _vector(v: np.ndarray) -> str:

@@ -59,3 +59,23 @@ def test_simulate_reports_the_force_an_estimate_measures(tmp_path):
                        measured_force={"top": {"value": force, "noise": 0.01 * float(np.linalg.norm(force))}})
     result = fe.estimate(scene, target)
     assert result.record["measured_force"]["scale"] == pytest.approx(1.0, abs=1e-4), result.record["measured_force"]
+
+
+@pytest.mark.parametrize("measured, words", [
+    ([-0.0368, 0.332], ["points against", "not its reaction on the probe"]),  # the reaction: the sign
+    ([0.332, 0.0368], ["is zero or across", "frame, axis order and group"]),  # turned 90 degrees: read "against"
+    ([0.0, 0.0], ["is zero or across", "frame, axis order and group"]),
+])
+def test_a_force_the_motion_cannot_scale_to_is_refused_for_its_reason(measured, words):
+    """A user's forces against the fitted motion's need [0.0184, -0.168]: the reaction is
+    told apart from a force across it or none."""
+    from types import SimpleNamespace
+
+    from fenics_elasto.inverse.measured_force import _check_direction
+    from fenics_elasto.util.errors import UserError
+
+    problem = SimpleNamespace(scene=SimpleNamespace(path="p.toml"))
+    force = MeasuredForce("top", np.array(measured), 0.01)
+    with pytest.raises(UserError) as refusal:
+        _check_direction(problem, {"top": np.array([0.0184, -0.168])}, [force], -1.0)
+    assert all(w in str(refusal.value) for w in words), refusal.value
