@@ -83,7 +83,7 @@ class Where:
     def label(self) -> str:
         for n in range(len(self.keys), 0, -1):
             if self.keys[:n] in self.overrides:
-                return f"{self.source} (--set {self.overrides[self.keys[:n]]!r})"
+                return f"{self.source} ({self.overrides[self.keys[:n]]})"
         return self.source
 
     def path(self, table: bool = False) -> str:
@@ -91,7 +91,7 @@ class Where:
         dotted = ""
         for key in self.keys:
             dotted += f"[{key}]" if isinstance(key, int) else ("." if dotted else "") + key_text(key)
-        return f"[{dotted}]" if table else dotted
+        return f"[{dotted}]" if table and dotted else dotted
 
     def fail(self, text: str, table: bool = False):
         path = self.path(table)

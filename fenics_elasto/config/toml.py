@@ -49,7 +49,7 @@ def parse_override(text: str) -> tuple[list[str], object]:
 
 def apply_overrides(config: dict, overrides, schema: Table, source: str = "") -> dict:
     """Set each override in the raw ``config`` (in place), the key path checked against
-    ``schema``; returns {key path: override text} for ``validate_*``.
+    ``schema``; returns {key path: how the override was given, for messages} for ``validate_*``.
 
     An override is ``"KEY=VALUE"`` text (``--set``), or from Python a (dotted key, value)
     pair -- ``overrides`` may be a dict of them: ``{"materials.prostate.E": 50.0}``.
@@ -57,10 +57,10 @@ def apply_overrides(config: dict, overrides, schema: Table, source: str = "") ->
     overridden = {}
     for item in (overrides.items() if isinstance(overrides, dict) else overrides):
         if isinstance(item, str):
-            text, (keys, value) = item, parse_override(item)
-        else:
-            text, keys, value = f"{item[0]}={item[1]!r}", item[0].split("."), item[1]
-        _set(config, keys, value, schema, Where(f"{source} (--set {text!r})" if source else f"--set {text!r}"))
+            (keys, value), text = parse_override(item), f"--set {item!r}"
+        else:  # from Python: named as the user wrote it, not as a --set they never typed
+            keys, value, text = item[0].split("."), item[1], f"{item[0]} = {item[1]!r} from Python"
+        _set(config, keys, value, schema, Where(f"{source} ({text})" if source else text))
         overridden[tuple(keys)] = text
     return overridden
 

@@ -491,3 +491,13 @@ def test_toml_text_reads_back_as_written():
                           "target": {"surfaces": {"out line": 'a "b"\\c\u00fc.vtp'}, "surface": DROP},
                           "optimizer": {}, "x": {"y": [{"z": 1}], "w": math.inf, "flag": False}})
     assert tomllib.loads(toml_text(data)) == data
+
+
+def test_a_rule_of_the_whole_file_names_no_empty_table():
+    """'give target or states, not both' concerns the whole file: it read 'p.toml: []: give ...'."""
+    from fenics_elasto.config.schema import Where
+    from fenics_elasto.util.errors import UserError
+
+    with pytest.raises(UserError) as refusal:
+        Where("p.toml").fail("give target or states, not both", table=True)
+    assert str(refusal.value) == "p.toml: give target or states, not both"
