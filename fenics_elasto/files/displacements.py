@@ -45,7 +45,9 @@ def read_displacement(path, gdim: int, frame: str = "world") -> tuple[np.ndarray
                                   "(LPS vectors); a point file's vectors are read in its points' frame")
         points, vectors = _point_field(path, gdim)
     require(len(points) > 0, f"{path}: the displacement field has no points")
-    require(np.isfinite(points).all() and np.isfinite(vectors).all(),
+    # An image's NaN may be a registration's masked background, dropped with the voxels
+    # outside the body (displacement_field.observed_samples refuses one inside it).
+    require(np.isfinite(points).all() and (is_image(path) or np.isfinite(vectors).all()),
             f"{path}: the displacement field holds NaN or infinite values")
     return points, vectors
 

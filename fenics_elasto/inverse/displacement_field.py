@@ -136,6 +136,9 @@ def observed_samples(field: DisplacementField, mesh, correlation: float | None) 
             f"{np.round(field.points.min(axis=0), 3).tolist()} to {np.round(field.points.max(axis=0), 3).tolist()}): "
             "is it in another frame or unit?")
     if field.dense:
+        masked = ~np.isfinite(field.vectors).all(axis=1) & ~outside
+        require(not masked.any(), f"{field.source}: {int(masked.sum())} voxels inside the body hold NaN or infinite "
+                f"values, the first at {np.round(field.points[np.argmax(masked)], 6).tolist()}")
         points, vectors = field.points[~outside], field.vectors[~outside]
     else:
         first = np.round(field.points[np.argmax(outside)], 6).tolist()

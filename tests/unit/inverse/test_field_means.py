@@ -107,3 +107,24 @@ def test_an_image_over_the_body_covers_it_and_a_slipped_one_does_not():
     slipped = grid * [-1.0, -1.0, 1.0]
     kept = np.all((slipped >= 0) & (slipped <= [2.0, 1.0, 1.0]), axis=1)
     assert displacement_field._coverage(slipped, int(kept.sum()), mesh) < 0.05
+
+
+def test_nan_voxels_outside_the_body_are_dropped_and_inside_refused():
+    """A registration masks its background with NaN: those voxels, outside the body, go
+    with the rest of the air (they were refused); one inside is refused, where it lies."""
+    from fenics_elasto.inverse.displacement_field import DisplacementField, observed_samples
+    from fenics_elasto.util.errors import UserError
+
+    mesh = dolfinx.mesh.create_box(MPI.COMM_WORLD, [[0.0, 0.0, 0.0], [2.0, 1.0, 1.0]], [4, 2, 2])
+    axes = [np.arange(-0.2, high + 0.2 + 1e-9, 0.1) for high in (2.0, 1.0, 1.0)]
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    vectors = 0.01 * grid
+    outside = ~np.all((grid > -1e-9) & (grid < [2.0 + 1e-9, 1.0 + 1e-9, 1.0 + 1e-9]), axis=1)
+    masked = np.where(outside[:, None], np.nan, vectors)
+    kept = observed_samples(DisplacementField(grid, masked, "masked.nii.gz", dense=True), mesh, None)
+    plain = observed_samples(DisplacementField(grid, vectors, "plain.nii.gz", dense=True), mesh, None)
+    assert np.isfinite(kept.vectors).all() and np.allclose(kept.vectors, plain.vectors)
+    inside = masked.copy()
+    inside[np.flatnonzero(~outside)[7]] = np.nan
+    with pytest.raises(UserError, match=r"holed.nii.gz: 1 voxels inside the body hold NaN"):
+        observed_samples(DisplacementField(grid, inside, "holed.nii.gz", dense=True), mesh, None)
