@@ -502,6 +502,9 @@ def problem_toml(spec: dict, shells: list[Shell], msh_name: str) -> str:
     if not patches:
         lines += ["# No [patches] in the spec: the whole outer boundary is clamped. Clamp only where the",
                   "# body is held (bones, a table) by giving patches and listing them here."]
+    else:
+        lines += ["# Every patch is clamped here: move a patch that carries the load (a probe, a plate pressed",
+                  "# on the body) to loaded, and to matched if its deformed place is observed."]
     if not cavities:
         lines += ["# No cavities: nothing carries the unknown forces yet; list the facet groups that do."]
     lines += [f"fixed   = {_toml_list(fixed)}",
