@@ -136,8 +136,9 @@ def inverse_problem(scene: Scene, target: Target | Mapping[str, Target] | None =
     from fenics_elasto.inverse.objective import InverseProblem
 
     if isinstance(target, Mapping):  # several states of one body
-        require(len(target) > 0 and all(isinstance(t, Target) for t in target.values()),
-                "estimate: several states are a mapping {name: Target, ...}")
+        require(len(target) > 0, "estimate: an empty mapping of states; give {name: Target, ...}")
+        wrong = [str(name) for name, t in target.items() if not isinstance(t, Target)]
+        require(not wrong, f"estimate: several states are a mapping {{name: Target, ...}}; state {wrong[:1]} is not a Target")
         states = [{"name": str(name), "target": t.spec(), **({"measured_force": t.measured_force} if t.measured_force else {})}
                   for name, t in target.items()]
         scene = with_force_reference(for_command(scene, "estimate", [("states", states)]))

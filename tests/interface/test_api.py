@@ -240,6 +240,10 @@ def test_bad_arguments_raise_user_error_with_the_cli_line(letter, tmp_path, caps
         fe.Target(surfaces=42)  # type: ignore[arg-type]
     with pytest.raises(fe.UserError, match=r"Target.measured_force\['top'\]: expected \{\"value\""):
         fe.Target(landmarks=(np.zeros((3, 2)), np.ones((3, 2))), measured_force={"top": [0.03, -0.3]})  # was a TypeError
+    with pytest.raises(fe.UserError, match="an empty mapping of states"):  # was "several states are a mapping"
+        fe.estimate(fe.load_scene(path), {})
+    with pytest.raises(fe.UserError, match=r"state \['b'\] is not a Target"):
+        fe.estimate(fe.load_scene(path), {"a": fe.Target(landmarks=(np.zeros((3, 2)), np.ones((3, 2)))), "b": "b.vtp"})
     with pytest.raises(fe.UserError, match=r"Target.displacement: NaN or infinite values"):  # said "landmarks"
         fe.Target(displacement=(np.zeros((3, 2)), np.full((3, 2), np.nan)))
     with pytest.raises(fe.UserError, match="no such target surface file"):
