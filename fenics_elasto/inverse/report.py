@@ -224,8 +224,12 @@ def _open_interval_warnings(params, post) -> list[str]:
         return []
     out = []
     for label, (low, high), (lo, hi) in zip(params.labels, post.interval(), params.bounds):
-        side = "upper" if high > hi * (1 + 1e-9) else "lower" if low < lo * (1 - 1e-9) else None
-        if side:
+        above, below = high > hi * (1 + 1e-9), low < lo * (1 - 1e-9)
+        side = "upper" if above else "lower" if below else None
+        if above and below:  # a user's swapped targets: the core at its lower bound, 0.96-708 for 2-500
+            out.append(f"{label}: its 95 % interval ({low:.4g}-{high:.4g}) reaches past both its bounds ({lo:g}-{hi:g}): "
+                       "the data do not bound it; is the target right (its files, groups and frame)?")
+        elif side:
             bound, other = (hi, f"at least {low:.4g}") if side == "upper" else (lo, f"at most {high:.4g}")
             out.append(f"{label}: its 95 % interval ({low:.4g}-{high:.4g}) reaches past its {side} bound {bound:g}: "
                        f"the data bound it on one side only; read it as {other}, and the value as weakly determined")

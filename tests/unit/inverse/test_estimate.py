@@ -280,3 +280,6 @@ def test_an_interval_past_a_bound_is_said():
     assert "at least 45.28" in line
     post = SimpleNamespace(interval=lambda: np.array([[1.2, 60.0], [0.05, 0.35]]))
     assert [w.split(":")[0] for w in _open_interval_warnings(params, post)] == ["tumour.E", "tissue.nu"]
+    post = SimpleNamespace(interval=lambda: np.array([[0.9565, 707.7], [0.3, 0.35]]))  # a user's swapped targets
+    (line,) = _open_interval_warnings(params, post)  # said "past its upper bound" only, the value at the lower
+    assert "reaches past both its bounds (2-500): the data do not bound it" in line
