@@ -95,6 +95,10 @@ def choose_inner(problem: InverseProblem, options: Options, basis) -> str:
     if inner == "auto":
         small = problem.force_dofs <= options.full_gn_limit
         inner = "gauss-newton" if basis is not None or small else "lbfgs"
+        if inner == "lbfgs":  # a user's 40k-DOF block ran 15 minutes this way, every fit at its cap, no word why
+            log.info(f"note: no reduced bases: each inner fit works in the full force space ({problem.force_dofs} "
+                     "force dofs, L-BFGS), which can take many minutes; `fenics-elasto train PROBLEM --synthetic 60 "
+                     "--rank 24 --out bases.npz` makes bases, given as [reduction] bases (README)")
     require(basis is None or inner == "gauss-newton", "reduced bases need optimizer.inner = 'gauss-newton'")
     require(problem.states.count == 1 or inner == "gauss-newton",
             f"{problem.scene.path}: several states need the Gauss-Newton inner solver: reduced bases ([reduction], "
