@@ -112,7 +112,9 @@ TARGET = Table({
 }, exclusive=[("surface", "surfaces", "labels")],
    one_of=("surface", "surfaces", "labels", "landmarks", "displacement"),
    expected="a table {surface, surfaces or labels, landmarks, displacement, landmark_weight, landmark_noise, "
-            "displacement_noise, displacement_correlation, displacement_frame, noise, smooth}")
+            "displacement_noise, displacement_correlation, displacement_frame, noise, smooth}",
+   elsewhere={"measured_force": "a measured force goes in [boundary.measured_force.GROUP], or in a [[states]] "
+                                "table beside its target (measured_force = {GROUP = {value, noise}})"})
 
 def _check_states(states: list, where: Where) -> list:
     names = [state["name"] for state in states]

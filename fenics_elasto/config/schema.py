@@ -310,9 +310,10 @@ class Table(Node):
     given (an override of one drops the others); ``one_of``: at least one must be;
     ``after(checked, where)`` adds the rules that span several keys."""
 
-    def __init__(self, keys: dict, exclusive=(), one_of=(), after=None, expected="a table"):
+    def __init__(self, keys: dict, exclusive=(), one_of=(), after=None, expected="a table", elsewhere=None):
+        """``elsewhere``: {key: where it belongs}, for keys users put in this table by mistake."""
         self.keys, self.exclusive, self.one_of, self.after = keys, exclusive, one_of, after
-        self.expected = expected
+        self.expected, self.elsewhere = expected, elsewhere or {}
 
     def table(self):
         return self
@@ -327,6 +328,8 @@ class Table(Node):
 
     def unknown(self, name, value, where: Where):
         as_table = isinstance(value, dict)
+        if name in self.elsewhere:
+            where.fail(f"not a key of this table: {self.elsewhere[name]}", table=as_table)
         near = suggestion(name, self.keys)
         if near is None:
             hint = "; known keys: " + ", ".join(self.keys)

@@ -501,3 +501,15 @@ def test_a_rule_of_the_whole_file_names_no_empty_table():
     with pytest.raises(UserError) as refusal:
         Where("p.toml").fail("give target or states, not both", table=True)
     assert str(refusal.value) == "p.toml: give target or states, not both"
+
+
+def test_a_force_inside_a_target_says_where_it_goes(tmp_path):
+    """A state's force written inside its target (as fe.Target takes it) read 'unknown
+    table; known keys: ...'; the line says where a measured force belongs."""
+    from fenics_elasto.config.schema import Where
+    from fenics_elasto.config.problem import TARGET
+    from fenics_elasto.util.errors import UserError
+
+    with pytest.raises(UserError, match=r"not a key of this table: a measured force goes in \[boundary.measured_force"):
+        TARGET.check({"surface": "s.vtp", "measured_force": {"top": {"value": [0, 1], "noise": 0.1}}},
+                     Where("p.toml", ("states", 0, "target")))
