@@ -143,7 +143,8 @@ def inverse_problem(scene: Scene, target: Target | Mapping[str, Target] | None =
                   for name, t in target.items()]
         scene = with_force_reference(for_command(scene, "estimate", [("states", states)]))
         # each state's data with its own checked [target] numbers (noises, weights), as a file's
-        problem = InverseProblem(scene, target=[(str(name), replace(t.data(scene.gdim, scene), spec=state["target"]))
+        problem = InverseProblem(scene, target=[(str(name), replace(t.data(scene.gdim, scene), spec=state["target"],
+                                                                    source=f"state {str(name)!r}: Target"))
                                                 for (name, t), state in zip(target.items(), scene.config["states"])])
     else:
         require(target is None or isinstance(target, Target), f"estimate: expected a Target, got {type(target).__name__}")

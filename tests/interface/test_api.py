@@ -242,6 +242,9 @@ def test_bad_arguments_raise_user_error_with_the_cli_line(letter, tmp_path, caps
         fe.Target(landmarks=(np.zeros((3, 2)), np.ones((3, 2))), measured_force={"top": [0.03, -0.3]})  # was a TypeError
     with pytest.raises(fe.UserError, match="an empty mapping of states"):  # was "several states are a mapping"
         fe.estimate(fe.load_scene(path), {})
+    wrong_group = fe.Target(surfaces={"nope": (np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0]]), np.array([[0, 1], [1, 2]]))})
+    with pytest.raises(fe.UserError, match=r"state 'press': Target.surfaces: no surface for matched group"):  # unnamed
+        fe.estimate(fe.load_scene(path), {"press": wrong_group})
     with pytest.raises(fe.UserError, match=r"state \['b'\] is not a Target"):
         fe.estimate(fe.load_scene(path), {"a": fe.Target(landmarks=(np.zeros((3, 2)), np.ones((3, 2)))), "b": "b.vtp"})
     with pytest.raises(fe.UserError, match=r"Target.displacement: NaN or infinite values"):  # said "landmarks"
