@@ -107,11 +107,13 @@ def finer_where_faceted(surface: Surface, name: str) -> Surface:
     """``surface`` refined while its faces cut its curves' corners by more than FACETED of
     an edge (module docstring), with one line saying so."""
     start, levels = surface, 0
-    share = before = faceting(surface)
+    normals = corner_normals(surface)  # each level's, for its measure and its split alike
+    share = before = faceting(surface, normals)
     while share > FACETED and levels < MAX_LEVELS and len(surface.cells) * SPLIT[surface.dim] <= MAX_CELLS:
-        surface = refined(surface, corner_normals(surface))
+        surface = refined(surface, normals)
         levels += 1
-        share = faceting(surface)
+        normals = corner_normals(surface)
+        share = faceting(surface, normals)
     if levels:
         log.info(f"note: {name}: its flat faces cut its curves' corners by {100 * before:.2g} % of an edge on average: "
                  f"refined {levels}x onto the smooth surface through its vertices ({len(start.cells)} -> "

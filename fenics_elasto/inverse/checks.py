@@ -5,6 +5,7 @@ and a final fit worse than the target can resolve.
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass
 
 import numpy as np
@@ -198,35 +199,7 @@ def check_extent(problem: InverseProblem) -> list[str]:
     out = []
     for misfit, spec in zip(problem.states.misfits, problem.states.specs):
         out += _extent_warnings(problem, misfit, spec)
-    return out + _repeated_states(problem)
-
-
-def _repeated_states(problem: InverseProblem) -> list[str]:
-    """States whose targets hold the very same data (a copied state, or two names for one
-    scan): counted twice, one scan narrows the interval as a second one would (a user's
-    pair of one scan: 4.61-5.37 against 4.47-5.56 alone)."""
-    seen: dict[bytes, str] = {}
-    out = []
-    for name, misfit in zip(problem.states.names, problem.states.misfits):
-        key = _fingerprint(misfit)
-        if key in seen:
-            out.append(f"states {seen[key]} and {name} observe the same data: counted twice, one scan narrows the "
-                       "interval as if it were two; give each state its own scan")
-        seen.setdefault(key, name)
     return out
-
-
-def _fingerprint(misfit) -> bytes:
-    """A digest of every surface's and point's coordinates a state's misfit compares with."""
-    import hashlib
-
-    digest = hashlib.sha1()
-    for term in misfit.terms:
-        for surface in getattr(term, "surfaces", []):
-            digest.update(surface.points.tobytes())
-        if isinstance(term, PointTerm):
-            digest.update(term.points.tobytes())
-    return digest.digest()
 
 
 def _extent_warnings(problem: InverseProblem, misfit, spec: dict) -> list[str]:
@@ -252,7 +225,8 @@ def _extent_warnings(problem: InverseProblem, misfit, spec: dict) -> list[str]:
 
 def target_warnings(problem: InverseProblem, best: InnerResult, state_noise: str = "residual") -> list[str]:
     """Each state's final rms distance against what its target can resolve: NOISE_RATIO x
-    its target.noise if given, else the target's mean edge length; ``state_noise``: how
+    its target.noise if given, else the target's mean edge length; then the states
+    against each other (their fits' spread, the same data twice); ``state_noise``: how
     states with no noise stated were weighed ([optimizer] state_noise)."""
     states = problem.states
     distances = states.distances(best.evaluation.residual)
@@ -261,7 +235,7 @@ def target_warnings(problem: InverseProblem, best: InnerResult, state_noise: str
                                         states.split(best.evaluation.residual)):
         state = f"state {name}: " if states.count > 1 else ""
         out += [state + line for line in _distance_warnings(misfit, spec, distances[name]) + _field_warnings(misfit, rows)]
-    return out + _unequal_states(problem, distances, state_noise)
+    return out + _unequal_states(problem, distances, state_noise) + _repeated_states(problem)
 
 
 def _field_warnings(misfit, residual: np.ndarray) -> list[str]:
@@ -300,6 +274,32 @@ def _unequal_states(problem: InverseProblem, distances: dict[str, dict], state_n
                 "is its target off (segmentation, frame, time point)? State each target.noise if they are known"]
     return [f"{spread} and they are weighed alike: state each state's target.noise to weigh them by it, "
             "or let their residuals weigh them (optimizer.state_noise = \"residual\")"]
+
+
+def _repeated_states(problem: InverseProblem) -> list[str]:
+    """States whose targets hold the very same data (a copied state, or two names for one
+    scan): counted twice, one scan narrows the interval as a second one would (a user's
+    pair of one scan: 4.61-5.37 against 4.47-5.56 alone)."""
+    seen: dict[bytes, str] = {}
+    out = []
+    for name, misfit in zip(problem.states.names, problem.states.misfits):
+        key = _fingerprint(misfit)
+        if key in seen:
+            out.append(f"states {seen[key]} and {name} observe the same data: counted twice, one scan narrows the "
+                       "interval as if it were two; give each state its own scan")
+        seen.setdefault(key, name)
+    return out
+
+
+def _fingerprint(misfit) -> bytes:
+    """A digest of every surface's and point's coordinates a state's misfit compares with."""
+    digest = hashlib.sha1()
+    for term in misfit.terms:
+        for surface in getattr(term, "surfaces", []):
+            digest.update(surface.points.tobytes())
+        if isinstance(term, PointTerm):
+            digest.update(term.points.tobytes())
+    return digest.digest()
 
 
 def _distance_warnings(misfit, spec: dict, distances: dict) -> list[str]:
