@@ -12,7 +12,7 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 
 from fenics_elasto.config.schema import (REQUIRED, ArrayOf, Boolean, Choice, Elastic, Integer, Key, LabelTargets, Matrix,
-                                         Named, Names, Number, NumberOr, String, Table, Vector, Where, show,
+                                         Named, Names, Number, NumberOr, String, Table, Vector, VoxelEdges, Where, show,
                                          suggestion)
 from fenics_elasto.config.toml import apply_overrides, read_toml
 
@@ -158,7 +158,10 @@ PROBLEM = Table({
     "optimizer": Key(OPTIMIZER, {}),
     # the source mesh's own error, from a solve one degree higher at the answer: corrected and counted
     # ("auto": in 3D), or not
-    "uncertainty": Key(Table({"mesh": Key(Choice("auto", "on", "off"), "auto")}), {}),
+    "uncertainty": Key(Table({"mesh": Key(Choice("auto", "on", "off"), "auto"),
+                              # the voxels of the label map the source was segmented from (uncertainty/voxels.py):
+                              # spacings along x, y, z, or the three edges as rows
+                              "source_voxels": Key(VoxelEdges())}), {}),
     "reduction": Key(Table({"bases": Key(String("a bases file"), REQUIRED), "rank": Key(Integer(ge=1))})),
     "solver": Key(Table({
         "method": Key(Choice("auto", "direct", "iterative"), "auto"),

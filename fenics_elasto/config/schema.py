@@ -296,6 +296,26 @@ class Matrix(Node):
         return [Vector((len(value),)).check(row, where) for row in value]
 
 
+class VoxelEdges(Node):
+    """A label map's voxel: its three spacings along x, y, z (positive), or its three
+    edges in world coordinates as rows (an oblique image's affine columns)."""
+
+    expected = "3 positive spacings [sx, sy, sz], or the voxel's three edges as rows (a 3x3 matrix)"
+
+    def check(self, value, where):
+        if isinstance(value, (list, tuple)) and value and all(isinstance(row, (list, tuple)) for row in value):
+            edges = Matrix((3,)).check(value, where)
+            (a, b, c), (d, e, f), (g, h, i) = edges
+            if a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g) == 0:
+                where.fail(f"expected {self.expected}, got {show(value)} (the edges span no volume)")
+            return edges
+        spacings = Vector((3,)).check(value, where) if isinstance(value, (list, tuple)) else where.fail(
+            f"expected {self.expected}, got {given(value)}")
+        if min(spacings) <= 0:
+            where.fail(f"expected {self.expected}, got {show(value)}")
+        return spacings
+
+
 @dataclass(frozen=True)
 class Key:
     """A table's key: its node, and its default (REQUIRED; None: absent; anything

@@ -46,6 +46,7 @@ class Surface:
         self._recent: list[list] = []  # [x, simplex, cp, features or None] of the latest queries, newest first
         self.smoothed_from: float | None = None  # the roughness of the surface smoothing.smoothed made this one from
         self.noise_gain = 1.0  # smoothing.smoothed: the share of white noise its filter let through
+        self.voxels: np.ndarray | None = None  # (3, 3) the edges (columns) of the label map's voxels it was made from
         self._outward: Any = None  # outward(): per face the unit normal out of the enclosed volume, or False (open, 2D)
 
         corners = self.points[self.cells]

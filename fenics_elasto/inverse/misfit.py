@@ -281,6 +281,7 @@ def label_map_targets(scene, table: dict, where: str) -> dict[str, Surface]:
         absent = sorted(set(labels) - present)
         require(not absent, f"{where} {group}: label(s) {absent} not in {table['image']}")
         out[group] = Surface(*label_surface(image.labels, image.affine, labels))
+        out[group].voxels = np.asarray(image.affine, float)[:3, :3]  # its segmentation's error: uncertainty/voxels.py
     return out
 
 
@@ -337,9 +338,11 @@ def smooth_if_rough(surface: Surface, name: str, smooth: str) -> Surface:
         smooth_surface = smoothed(surface)
         log.info(f"note: {name}: rough (noise ~{roughness(surface):.3g}, mean edge {surface.mean_edge:.3g}): "
                  f"smoothed before matching (noise left ~{noise(smooth_surface):.3g}); [target] smooth = \"off\" keeps it")
-        return finer_where_faceted(smooth_surface, name)
-    # A rough surface's own normals are its noise: no smooth surface to lift it onto.
-    return surface if is_rough(surface) else finer_where_faceted(surface, name)
+        out = finer_where_faceted(smooth_surface, name)
+    else:  # a rough surface's own normals are its noise: no smooth surface to lift it onto
+        out = surface if is_rough(surface) else finer_where_faceted(surface, name)
+    out.voxels = surface.voxels
+    return out
 
 
 def check_surface_groups(matched: list[str], given, where: str, noun: str = "surface") -> None:

@@ -39,6 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
+from fenics_elasto.files.images import read_label_image
 from fenics_elasto.mesh.labelmaps import coarsen, label_shells
 from fenics_elasto.mesh.repair import Shell, closed_shells, cut_by_planes, enclosed_volume, sharp_edges, triangle_areas
 from fenics_elasto.util.budget import CELLS_PER_VOLUME, check_mesh_cost
@@ -477,8 +478,9 @@ def _toml_list(names) -> str:
     return "[" + ", ".join(f'"{n}"' for n in names) + "]"
 
 
-def problem_toml(spec: dict, shells: list[Shell], msh_name: str) -> str:
-    """A ready problem.toml: every group listed, every region estimated against the body."""
+def problem_toml(spec: dict, shells: list[Shell], msh_name: str, voxels: np.ndarray | None = None) -> str:
+    """A ready problem.toml: every group listed, every region estimated against the body;
+    ``voxels``: the label map's voxel edges (columns), where the scene was segmented from one."""
     body = spec["body"]["material"]
     regions, cavities, patches = list(spec["regions"]), list(spec["cavities"]), list(spec["patches"])
     fixed = patches or ["outer"]
@@ -519,6 +521,10 @@ def problem_toml(spec: dict, shells: list[Shell], msh_name: str) -> str:
     lines += ["", "# The observed (deformed) surfaces, one per matched group; or `surface = ...` or `landmarks = ...`.",
               "[target.surfaces]"]
     lines += [f'{group} = "target_{group}.stl"' for group in matched]
+    if voxels is not None:
+        rows = ", ".join("[" + ", ".join(f"{v:.6g}" for v in edge) + "]" for edge in np.asarray(voxels).T)
+        lines += ["", "# The label map's voxels, as edges in world coordinates: how far its segmentation may be off,",
+                  "# a part of sigma (\"voxels\").", "[uncertainty]", f"source_voxels = [{rows}]"]
     return "\n".join(lines) + "\n"
 
 
@@ -612,5 +618,8 @@ def build_scene_from_spec(spec_path, out, size: float | None = None) -> Path:
     log.info(f"{counts['tetrahedra']} quadratic tetrahedra (curved to the surfaces{straight}), "
         f"{counts['nodes']} nodes -> {out / 'scene.msh'}")
     problem = out / "problem.toml"
-    problem.write_text(problem_toml(spec, shells, "scene.msh"))
+    voxels = None
+    if spec["labels"]:  # the source's segmentation error is a part of sigma (inverse/uncertainty/voxels.py)
+        voxels = read_label_image(spec_path.parent / spec["labels"]["image"], "labels.image").affine[:3, :3]
+    problem.write_text(problem_toml(spec, shells, "scene.msh", voxels))
     return problem

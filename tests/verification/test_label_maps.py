@@ -28,3 +28,5 @@ def test_tumour_E_from_two_label_maps(tmp_path):
     assert E == pytest.approx(40.0, rel=0.2)
     assert low <= 40.0 <= high
     assert high / low < 2.5  # the maps determine E: before the fix the interval spanned 4x and more
+    parts = result["uncertainty"]["tumour.E"]["parts"]
+    assert 0.2 * parts["noise"] < parts["voxels"] < 5 * parts["noise"]  # both maps' staircase, counted (voxels.py)

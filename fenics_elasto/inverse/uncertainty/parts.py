@@ -4,7 +4,8 @@ Noise is not the only error in an answer. The source mesh has its own (``mesh``:
 how far the answer would move with elements one degree higher, mesh_error.py), and
 reduced bases that cannot represent the wall motion
 have theirs (``bases``: how far the answer moves when the bases may also use the wall
-motion surface matching finds and they miss -- reduction.missing_wall_motion). Both
+motion surface matching finds and they miss -- reduction.missing_wall_motion), and so do
+surfaces segmented from label maps (``voxels``: their staircase, voxels.py). All
 are added to the noise's std in quadrature; the interval widens with them and the
 printed line names the largest part and the lever that shrinks it.
 """
@@ -15,9 +16,11 @@ import numpy as np
 
 from fenics_elasto.inverse.uncertainty.mesh_error import HigherDegreeModel, mesh_error_wanted, mesh_shift
 from fenics_elasto.inverse.uncertainty.posterior import Posterior
+from fenics_elasto.inverse.uncertainty.voxels import voxel_std
 
 LEVERS = {"mesh": "a finer source mesh at the organs (about 4x smaller per halving of the element size, P2)",
-          "bases": "bases with more examples and a higher rank (train --synthetic N --rank R)"}
+          "bases": "bases with more examples and a higher rank (train --synthetic N --rank R)",
+          "voxels": "label maps of finer voxels (thinner slices) for the source or the target"}
 
 
 def add_model_error(problem, post: Posterior, theta, evaluation, lin, fit: dict | None,
@@ -36,6 +39,9 @@ def add_model_error(problem, post: Posterior, theta, evaluation, lin, fit: dict 
         parts["mesh"] = np.where(np.isfinite(ds), np.abs(ds), 0.0)
         post.mesh_shift_s = np.asarray(ds, float)
         post.mesh_moves = (moved, motion)
+    voxels = voxel_std(problem, lin, evaluation)
+    if voxels is not None:
+        parts["voxels"] = np.where(np.isfinite(voxels), voxels, 0.0)
     post.model_parts_s = parts
 
 

@@ -313,9 +313,14 @@ def _profiled(lin: Linearisation) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 def offset_shift(lin: Linearisation, de: np.ndarray) -> np.ndarray:
     """ds (first order) when the weighted residual changes by ``de`` and the controls
     follow: -S^-1 B^T de."""
+    return offset_matrix(lin) @ de
+
+
+def offset_matrix(lin: Linearisation) -> np.ndarray:
+    """-S^-1 B^T: ``offset_shift``'s map from the weighted residual's change to ds; NaN
+    rows for an undetermined constant (no first order)."""
     B, S_inv, known = _profiled(lin)
-    ds = -known @ (B.T @ de)
-    return np.where(np.isfinite(np.diag(S_inv)), ds, np.nan)  # an undetermined constant: no first order
+    return np.where(np.isfinite(np.diag(S_inv))[:, None], -known @ B.T, np.nan)
 
 
 def state_patches(positions: np.ndarray, states: int) -> np.ndarray:

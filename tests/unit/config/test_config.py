@@ -270,7 +270,7 @@ def test_defaults_filled():
         "optimizer": {"inner": "auto", "inner_maxiter": 400, "outer_maxiter": 40, "outer_xtol": 1e-3, "scan": 5,
                       "inner_tol": 1e-6, "full_gn_limit": 1500, "anchor": 1e-4, "surrogate": True, "matched_motion": "auto", "state_noise": "residual",
                       "allow_undetermined": False},
-        "uncertainty": {"mesh": "auto"},
+        "uncertainty": {"mesh": "auto", "source_voxels": None},
         "reduction": None,
         "solver": {"method": "auto", "rtol": 1e-8, "factor": "lu", "blr": "auto"},
     }
