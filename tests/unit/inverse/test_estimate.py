@@ -283,3 +283,37 @@ def test_an_interval_past_a_bound_is_said():
     post = SimpleNamespace(interval=lambda: np.array([[0.9565, 707.7], [0.3, 0.35]]))  # a user's swapped targets
     (line,) = _open_interval_warnings(params, post)  # said "past its upper bound" only, the value at the lower
     assert "reaches past both its bounds (2-500): the data do not bound it" in line
+
+
+def test_an_end_face_moved_in_its_own_plane_is_covered():
+    """A bar's loaded end face, bent and twisted, moves mostly in its own plane: its rim
+    overhangs the whole target by that motion while the face's nodes lie on it (a user's
+    bar: 7 % of them 0.275 beyond, the rest within 0.044, refused as covering part of
+    it). The sides beside it show the motion; against it the face is covered. A target
+    cut to half the face stays refused where the overhang is BEYOND_EDGE times the motion."""
+    from fenics_elasto.geometry.surface import Surface
+    from fenics_elasto.inverse.checks import GroupTarget, check_covered
+    from fenics_elasto.util.errors import UserError
+
+    def square(x0: float, y0: float, z0: float, n: int = 20, width: float = 1.0):
+        s = np.linspace(0.0, width, n + 1)
+        u, v = np.meshgrid(s, np.linspace(0.0, 1.0, n + 1), indexing="ij")
+        points = np.c_[np.full(u.size, x0), y0 + u.ravel(), z0 + v.ravel()]
+        k = np.arange(n * n)
+        i, j = k // n, k % n
+        a, b, c, d = i * (n + 1) + j, (i + 1) * (n + 1) + j, (i + 1) * (n + 1) + j + 1, i * (n + 1) + j + 1
+        return points, np.r_[np.c_[a, b, c], np.c_[a, c, d]]
+
+    nodes, _ = square(3.0, 0.0, 0.0)
+    moved = Surface(*square(3.0, 0.3, 0.013))  # the end face moved by 0.3 along y, in its plane
+    face = GroupTarget(moved, nodes, np.linalg.norm(nodes - moved.closest(nodes), axis=1), "loaded", "loaded.vtp")
+    side_nodes, _ = square(0.0, 0.0, 0.0)
+    side = GroupTarget(Surface(*square(0.3, 0.0, 0.0)), side_nodes, np.full(len(side_nodes), 0.3), "sides", "sides.vtp")
+    check_covered([face, side])
+    with pytest.raises(UserError, match=r"loaded.vtp: covers only part of loaded"):
+        check_covered([face])  # alone, nothing shows the motion
+    half = Surface(*square(3.0, 0.0, 0.013, width=0.5))
+    cut = GroupTarget(half, nodes, np.linalg.norm(nodes - half.closest(nodes), axis=1), "loaded", "half.vtp")
+    still = GroupTarget(side.surface, side_nodes, np.full(len(side_nodes), 0.05), "sides", "sides.vtp")
+    with pytest.raises(UserError, match=r"half.vtp: covers only part of loaded: \d+ % of its nodes"):
+        check_covered([cut, still])  # half the face 0.5 beyond, against sides that moved 0.05
