@@ -197,7 +197,10 @@ def pressure_examples(problem, count: int, length: float, rng, levels: int) -> n
     v_groups = _group_of(problem, loads.v_points)
     pressure = SmoothFields(count, 1, forward.gdim, length, rng)
     traction = SmoothFields(count, forward.gdim, forward.gdim, length, rng)
-    walls = np.unique(q_groups[q_groups >= 0])  # each wall its own sign and size: one fills, one empties
+    # each wall its own sign and size: one fills, one empties. Every rank's walls, not its own: a
+    # rank without a wall drew fewer sizes, and its material levels then differed (a bar's loaded
+    # end on one rank of two: MUMPS refused blocks of 4 and 5 columns, INFOG(1) = -22)
+    walls = np.unique(np.concatenate(model.dofs.V.mesh.comm.allgather(np.unique(q_groups[q_groups >= 0]))))
     sizes = [rng.normal(0.0, 1.0, count)[:, None] for _ in walls]
     thetas = material_levels(problem, min(levels, count), rng)
     first = _middle(problem, thetas)  # factorized; the others borrow its factors (_borrowed_walls)
