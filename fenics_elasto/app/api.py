@@ -21,6 +21,7 @@ from fenics_elasto.config.problem import map_files
 from fenics_elasto.inverse.reduction.bases import Bases
 from fenics_elasto.model.scene import Scene, reconfigure
 from fenics_elasto.util.errors import UserError, require
+from fenics_elasto.util.interrupts import python_interrupts
 from fenics_elasto.util.logs import log
 
 if TYPE_CHECKING:
@@ -175,7 +176,9 @@ def estimate(scene: Scene, target: Target | Mapping[str, Target] | None = None,
     from fenics_elasto.inverse.estimator import estimate as run
 
     problem, basis, held_out = inverse_problem(scene, target, bases)
-    return Estimate(problem.scene, run(problem, basis=basis, held_out=held_out), problem, basis)
+    with python_interrupts(problem.scene.comm):  # gmsh, used to mesh before, leaves Ctrl-C killing the process
+        result = run(problem, basis=basis, held_out=held_out)
+    return Estimate(problem.scene, result, problem, basis)
 
 
 def train(scene: Scene, synthetic: int | None = None, rank: int = 80, seed: int = 0, examples: Iterable[PathLike] = (),
@@ -191,8 +194,9 @@ def train(scene: Scene, synthetic: int | None = None, rank: int = 80, seed: int 
 
     examples = [Path(p).resolve() for p in examples]
     require(examples or synthetic is not None, "train: give examples or synthetic=N")
-    require(synthetic is None or (isinstance(synthetic, int) and synthetic >= 1), f"--synthetic must be >= 1, got {synthetic}")
-    require(isinstance(rank, int) and rank >= 1, f"--rank must be >= 1, got {rank}")
+    require(synthetic is None or (isinstance(synthetic, int) and synthetic >= 1),
+            f"train: synthetic must be an integer >= 1, got {synthetic!r}")
+    require(isinstance(rank, int) and rank >= 1, f"train: rank must be an integer >= 1, got {rank!r}")
     generator = None if synthetic is None else Generator(synthetic, seed, length, amplitude)
     problem = InverseProblem(for_command(scene, "train"), target=False)
     log.info(f"train: 1 scene(s), {len(examples)} examples, {problem.force_dofs} force dofs, rank {rank}")

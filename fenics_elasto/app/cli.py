@@ -108,6 +108,7 @@ def _train(args) -> None:
     require(patients, "train: give PROBLEM.toml --examples ... or --synthetic N, "
                       "or --atlas with --patient PROBLEM.toml EXAMPLE...")
     require(not args.examples or args.problem, "train: --examples belong to a PROBLEM.toml (first argument)")
+    require(args.rank >= 1, f"--rank must be >= 1, got {args.rank}")
     generator = None
     if args.synthetic is not None:
         require(args.synthetic >= 1, f"--synthetic must be >= 1, got {args.synthetic}")

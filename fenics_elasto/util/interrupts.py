@@ -66,6 +66,26 @@ _state = _State()
 
 
 @contextmanager
+def python_interrupts(comm=None):
+    """Ctrl-C raises KeyboardInterrupt inside the block where no Python handler is set
+    (serial, main thread): ``gmsh.initialize()`` resets SIGINT to the default, which ends
+    the process at once -- a script that meshed with gmsh lost its estimate's best result
+    so far (a user's bar, 2026-12-07). A handler of the caller's (the command line's
+    ``handle_signals``) is left alone, and on several ranks too, where a signal must stop
+    them together. The previous handler comes back at the end."""
+    previous = signal.getsignal(signal.SIGINT)
+    if (threading.current_thread() is not threading.main_thread() or callable(previous)
+            or (comm is not None and comm.size > 1)):
+        yield
+        return
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous if previous is not None else signal.SIG_DFL)
+
+
+@contextmanager
 def handle_signals(comm=None):
     """Turn SIGINT, SIGTERM and SIGHUP into ``Interrupted`` inside the block (main thread only).
 
