@@ -223,8 +223,10 @@ def _extent_warnings(problem: InverseProblem, misfit, spec: dict) -> list[str]:
         if not isinstance(term, SurfaceTerm):
             continue
         for i, surface in enumerate(term.surfaces):
-            name = f"target.surface ({spec['surface']})" if spec.get("surface") else \
-                f"target.surfaces.{matched[i]} ({(spec.get('surfaces') or {}).get(matched[i], 'labels')})"
+            labels = spec.get("labels") or {}
+            name = (f"target.surface ({spec['surface']})" if spec.get("surface") else
+                    f"target.labels.{matched[i]} ({labels.get('image')})" if labels else
+                    f"target.surfaces.{matched[i]} ({(spec.get('surfaces') or {}).get(matched[i])})")
             own = problem.observation.points[rows][term.surface_of == i]
             size = float(np.linalg.norm(np.ptp(own, axis=0))) if len(own) else 0.0
             if size <= 0:

@@ -169,6 +169,13 @@ def _drop_bad_triangles(triangles, label):
     return triangles[np.sort(first)]
 
 
+def without_specks(points: np.ndarray, triangles: np.ndarray, label: str) -> tuple[np.ndarray, np.ndarray]:
+    """The surface without its stray pieces (``_drop_specks``), its points compacted."""
+    kept = _drop_specks(points, triangles, label)
+    used, local = np.unique(kept, return_inverse=True)
+    return points[used], local.reshape(-1, 3)
+
+
 def _drop_specks(points, triangles, label):
     component = _components(triangles)
     area = np.bincount(component, weights=triangle_areas(points, triangles))
@@ -176,8 +183,11 @@ def _drop_specks(points, triangles, label):
     if specks.any():
         sizes = np.bincount(component)[specks]
         count = f"{sizes.min()} triangles each" if sizes.min() == sizes.max() else f"{sizes.min()}-{sizes.max()} triangles"
-        log.info(f"{label}: dropped {specks.sum()} stray piece(s) ({count}, {100 * area[specks].sum() / area.sum():.2g} % "
-            f"of the area; kept pieces of at least {100 * SPECK_FRACTION:g} % of the largest's)")
+        # a label map's speck is smoothed to almost a point before it is measured: its area says nothing there
+        share = 100 * area[specks].sum() / area.sum()
+        of_area = f", {share:.2g} % of the area" if share >= 0.01 else ""
+        log.info(f"{label}: dropped {specks.sum()} stray piece(s) ({count}{of_area}; kept pieces of at least "
+                 f"{100 * SPECK_FRACTION:g} % of the largest's area)")
     return triangles[~specks[component]]
 
 

@@ -244,6 +244,16 @@ def test_target_from_a_label_map_of_the_deformed_state(kidney):
     labels = fe.Target(labels={"image": kidney.parent / "deformed.nii.gz", "tumour_surface": 2})
     assert np.array_equal(labels.data(3, scene).surfaces["tumour_surface"].points, surface.points)
     assert labels.spec()["labels"]["image"] == str((kidney.parent / "deformed.nii.gz").resolve())
+    # a stray tumour voxel in the kidney, far from the tumour: dropped as `scene` drops the rest map's (a
+    # user's made the target "1.55 x the matched surface ... in other units?")
+    stray = lm.label_map(scale=1.1)
+    stray[tuple(np.argwhere(stray == 1)[0] + 2)] = 2
+    lm.write_nifti(kidney.parent / "stray.nii.gz", stray)
+    lines: list[str] = []
+    with logged(lines):
+        speckled = read_target(load_scene(kidney, [("target", {"labels": {**target["labels"], "image": "stray.nii.gz"}})]))
+    assert speckled.surfaces["tumour_surface"].extent == pytest.approx(surface.extent, rel=1e-9)
+    assert any("tumour_surface: dropped 1 stray piece(s)" in line for line in lines), lines
     for labels, words in (({"tumour_surface": 7}, "label(s) [7] not in deformed.nii.gz"),
                           ({"tumour_surface": 2, "outer": [1, 2]}, "['outer'] not in boundary.matched"),
                           # a misspelt group is named, with what it may have meant
