@@ -47,6 +47,11 @@ def envelope_gradient(misfit, fit, dJ: np.ndarray) -> np.ndarray:
 # iterations (5.4 -> 1.1 s), Phi* 1e-6 higher, E the same to the bit.
 LOOSE = "start"
 
+# Where the full force space's fits stop at their limit, more iterations are the slow lever
+# (a user's kidney: 100 s a material value, 400 iterations, not converged): said once as it
+# happens, and in the run's warning.
+NO_BASES_REMEDY = ", or give reduced bases (`fenics-elasto train`), whose fits take a few Gauss-Newton steps"
+
 
 class Profile:
     """Phi*(theta) with every value solved in full; keeps every solved point."""
@@ -114,6 +119,8 @@ class Profile:
             result.response = None  # kept in the linearisation only
         log.info(f"  {stage:5s} {self.params.describe(theta)}  Phi* = {result.value:.6e}  "
                  f"({result.iterations} inner iterations{'' if result.converged else ', NOT converged'})")
+        if not result.converged and self.basis is None and self.unconverged == 1 and stage != "ci":
+            log.info(f"  note: the inner fit stopped at its iteration limit: raise optimizer.inner_maxiter{NO_BASES_REMEDY}")
         return result
 
     def _on_refined_surrogate(self, theta) -> tuple[InnerResult, np.ndarray] | None:

@@ -12,7 +12,7 @@ from fenics_elasto.inverse.inner import InnerResult
 from fenics_elasto.model.scene import shift_in_units
 from fenics_elasto.util.logs import log
 from fenics_elasto.inverse.outer import BRACKET_STEP, bracket, remembered_values, surrogate_minimum
-from fenics_elasto.inverse.profile import FewerModes, WeakerPrior
+from fenics_elasto.inverse.profile import NO_BASES_REMEDY, FewerModes, WeakerPrior
 from fenics_elasto.inverse.uncertainty.posterior import Posterior
 from fenics_elasto.inverse.reduction.bases import bases_fit, missing_wall_motion
 
@@ -182,7 +182,7 @@ def run_warnings(estimator: Estimator, theta, interrupted: bool, fit=None, post=
     if profile.unconverged:
         out.append(f"the inner solver stopped at its iteration limit ({estimator.options.inner_maxiter}) at "
                    f"{profile.unconverged} of {sum(stage != 'ci' for *_, stage in profile.solved)} material "
-                   "values: raise optimizer.inner_maxiter")
+                   "values: raise optimizer.inner_maxiter" + (NO_BASES_REMEDY if profile.basis is None else ""))
     for label, value, (lo, hi) in zip(estimator.params.labels, theta, estimator.params.bounds):
         if np.isclose(value, lo, rtol=1e-3) or np.isclose(value, hi, rtol=1e-3):
             out.append(f"{label} = {value:.4g} is at its bound [{lo:g}, {hi:g}]: widen the bounds or check the set-up")

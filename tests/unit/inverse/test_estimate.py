@@ -317,3 +317,21 @@ def test_an_end_face_moved_in_its_own_plane_is_covered():
     still = GroupTarget(side.surface, side_nodes, np.full(len(side_nodes), 0.05), "sides", "sides.vtp")
     with pytest.raises(UserError, match=r"half.vtp: covers only part of loaded: \d+ % of its nodes"):
         check_covered([cut, still])  # half the face 0.5 beyond, against sides that moved 0.05
+
+
+def test_fits_at_their_limit_without_bases_point_to_train(letter_source, tmp_path):
+    """Inner fits stopped at their iteration limit in the full force space: the progress
+    line says so once, as it happens, and the run's warning names reduced bases beside
+    more iterations (a user's kidney spent 100 s a material value at the limit, told only
+    to raise it)."""
+    from conftest import logged
+
+    target = _letter_target(tmp_path, 0.25)
+    problem = InverseProblem(load_scene(letter_source, [f"target.surface='{target}'", "optimizer.inner='lbfgs'",
+                                                        "optimizer.inner_maxiter=2", "optimizer.scan=3"]))
+    lines: list[str] = []
+    with logged(lines):
+        result = estimate(problem)
+    note = "note: the inner fit stopped at its iteration limit: raise optimizer.inner_maxiter, or give reduced bases"
+    assert sum(note in line for line in lines) == 1
+    assert any("raise optimizer.inner_maxiter, or give reduced bases (`fenics-elasto train`)" in w for w in result.warnings)
