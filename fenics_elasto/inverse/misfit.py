@@ -314,13 +314,20 @@ def _noise_weight(spec: dict, surfaces: list[Surface], own: float | None, fallba
         return 1.0
     sigma = spec.get("noise")
     if sigma is None and surfaces:
-        sigma = max(max(noise(s) for s in surfaces), SURFACE_FLOOR * float(np.mean([s.mean_edge for s in surfaces])))
+        sigma = credited_noise(surfaces)
     if sigma is None:  # no surface: the other point data's noise, else the rows' own scale
         sigma = fallback if fallback is not None else own
     return float((sigma / own) ** 2)
 
 
 SURFACE_FLOOR = 0.1  # landmark_weight: the least noise a target surface is credited with, in its mean edges
+
+
+def credited_noise(surfaces: list[Surface]) -> float:
+    """The noise target surfaces with none stated are weighed with beside landmarks or a
+    field of stated noise: the noise they show (their roughness), but at least
+    SURFACE_FLOOR of their mean edge."""
+    return max(max(noise(s) for s in surfaces), SURFACE_FLOOR * float(np.mean([s.mean_edge for s in surfaces])))
 
 
 def target_surface(path: Path, gdim: int, smooth: str) -> Surface:
