@@ -67,9 +67,12 @@ def check_identifiable(answer: AnswerUncertainty, scanned: list[float], scan: in
     if not undetermined:
         return
     why = "; ".join(f"{label}: {reason}" for label, reason in undetermined.items())
+    remedy = ("state target.noise for the surfaces if they are known better: the landmarks' stated noise set the "
+              f"interval's scale ({post.noise_std:.3g}, where the residual shows {post.residual_std:.3g}), " if
+              post.noise_source == "the landmarks' stated noise" else "")
     message = (f"{answer.problem.scene.path}: the data do not determine {', '.join(undetermined)} (at the best "
-               f"value solved, {why}); fix it, or add data that see it (reduced bases, landmarks inside the body, more "
-               f"matched surfaces), or set optimizer.allow_undetermined = true")
+               f"value solved, {why}); {remedy or 'fix it, '}or add data that see it (reduced bases, landmarks inside "
+               f"the body, more matched surfaces), or set optimizer.allow_undetermined = true")
     if not allow:
         raise UserError(message)
     answer.undetermined.update(undetermined)
