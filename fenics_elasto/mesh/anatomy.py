@@ -493,7 +493,8 @@ def problem_toml(spec: dict, shells: list[Shell], msh_name: str, voxels: np.ndar
         "",
         "# Young's moduli in any unit (kPa, for one): with unknown boundary forces only the ratios",
         "# of E are identifiable, so one material (the body's) stays fixed as the reference.",
-        "# Poisson's ratio 0.4: nearly incompressible soft tissue.",
+        f"# Poisson's ratio {TISSUE_NU:g}: a compressible start for soft tissue (0.45-0.49 where it is nearly",
+        "# incompressible); set what your tissue is.",
     ]
     for region in regions:
         lines += ["", f"[materials.{region}]",
