@@ -45,8 +45,10 @@ def voxel_edges(value) -> np.ndarray | None:
 
 
 def normal_std(normals: np.ndarray, edges: np.ndarray) -> np.ndarray:
-    """The segmentation's rms error along each unit normal for voxels of these edges."""
-    return VOXEL_SHARE * np.linalg.norm(normals @ edges, axis=1)
+    """The segmentation's rms error along each unit normal for voxels of these edges (a 2D
+    scene: the edges in its plane)."""
+    gdim = normals.shape[1]
+    return VOXEL_SHARE * np.linalg.norm(normals @ edges[:gdim, :gdim], axis=1)
 
 
 def correlated_sum(weights: np.ndarray, positions: np.ndarray, length: float) -> float:
