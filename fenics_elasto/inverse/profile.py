@@ -53,6 +53,14 @@ LOOSE = "start"
 NO_BASES_REMEDY = ", or give reduced bases (`fenics-elasto train`), whose fits take a few Gauss-Newton steps"
 
 
+def _say_solved(stage: str, where: str, result: InnerResult, first_at_limit: bool) -> None:
+    """The progress line of a solve; the first fit at its limit without bases says what helps."""
+    log.info(f"  {stage:5s} {where}  Phi* = {result.value:.6e}  "
+             f"({result.iterations} inner iterations{'' if result.converged else ', NOT converged'})")
+    if first_at_limit:
+        log.info(f"  note: the inner fit stopped at its iteration limit: raise optimizer.inner_maxiter{NO_BASES_REMEDY}")
+
+
 class Profile:
     """Phi*(theta) with every value solved in full; keeps every solved point."""
 
@@ -117,10 +125,8 @@ class Profile:
                 dy = self.problem.field_rows(theta, result.evaluation)
             self.linearisations[id(result)] = linearise(self.problem, theta, result, result.response, dy, self.inner.alpha)
             result.response = None  # kept in the linearisation only
-        log.info(f"  {stage:5s} {self.params.describe(theta)}  Phi* = {result.value:.6e}  "
-                 f"({result.iterations} inner iterations{'' if result.converged else ', NOT converged'})")
-        if not result.converged and self.basis is None and self.unconverged == 1 and stage != "ci":
-            log.info(f"  note: the inner fit stopped at its iteration limit: raise optimizer.inner_maxiter{NO_BASES_REMEDY}")
+        _say_solved(stage, self.params.describe(theta), result, first_at_limit=self.basis is None
+                    and self.unconverged == 1 and not result.converged and stage != "ci")
         return result
 
     def _on_refined_surrogate(self, theta) -> tuple[InnerResult, np.ndarray] | None:
