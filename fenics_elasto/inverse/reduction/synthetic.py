@@ -121,8 +121,11 @@ def default_scales(problem) -> tuple[float, float]:
 
 
 def affine_basis(problem) -> np.ndarray:
-    """(force_dofs, walls x (gdim + gdim^2)) orthonormal: every affine motion of each
-    loaded wall on its own, u = b + A (x - centre)."""
+    """(force_dofs, at most walls x (gdim + gdim^2)) orthonormal: every affine motion of
+    each loaded wall on its own, u = b + A (x - centre), in that order; those a wall
+    cannot show are left out (a flat wall has no extent along its normal: its columns
+    there vanish to round-off, and QR had made each a direction of pure noise, kept first
+    in the bases -- a bar's bases on one rank and on two then differed by 44 degrees)."""
     forward = problem.forward
     points = forward.loaded.gather(forward.loaded.coords)
     groups = problem.loaded_groups()
@@ -136,8 +139,23 @@ def affine_basis(problem) -> np.ndarray:
                 column = np.zeros(points.shape)
                 column[rows, i] = part
                 columns.append(column.ravel())
-    Q, _ = np.linalg.qr(np.stack(columns, axis=1))
-    return Q
+    return orthonormal_in_order(np.stack(columns, axis=1))
+
+
+def orthonormal_in_order(A: np.ndarray, tol: float = 1e-8) -> np.ndarray:
+    """Orthonormal columns spanning A's, taken in A's order (Gram-Schmidt, twice for
+    round-off); a column with less than ``tol`` of A's largest column left once the
+    earlier ones are taken out adds no direction."""
+    kept: list[np.ndarray] = []
+    scale = max(float(np.linalg.norm(A, axis=0).max(initial=0.0)), 1e-300)
+    for a in A.T:
+        v = a.copy()
+        for _ in range(2):
+            for q in kept:
+                v -= (q @ v) * q
+        if np.linalg.norm(v) > tol * scale:
+            kept.append(v / np.linalg.norm(v))
+    return np.stack(kept, axis=1) if kept else np.zeros((len(A), 0))
 
 
 def synthetic_examples(problem, generator: Generator) -> np.ndarray:

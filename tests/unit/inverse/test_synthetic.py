@@ -52,7 +52,7 @@ def test_bases_hold_every_affine_wall_motion(inclusion):
     motion = np.array([0.03, -0.02]) + (points - points.mean(axis=0)) @ np.array([[0.01, 0.02], [-0.03, 0.005]]).T
     d = motion.ravel()
     assert np.linalg.norm(d - bases.W @ (bases.W.T @ d)) < 1e-10 * np.linalg.norm(d)
-    assert affine_basis(problem).shape[1] == 6  # one wall (top) in 2D: 2 shifts + 4 linear maps
+    assert affine_basis(problem).shape[1] == 4  # one flat wall (top) in 2D: 2 shifts + 2 linear maps along it
     assert 0 < bases.held_out <= 1
 
 
@@ -233,7 +233,7 @@ def test_the_half_rank_shift_is_where_an_estimate_at_half_the_rank_goes(tmp_path
     source = build_scene("inclusion", tmp_path / "source")
     target = inclusion_ratio_4_target(tmp_path / "fine", "boundary.displacement.top.ripple={amplitude=0.05, length=3.0, seed=2}")
     scene = load_scene(source, [target])
-    W = train_bases(InverseProblem(scene), [], rank=12, generator=Generator(16, seed=1)).W
+    W = train_bases(InverseProblem(scene), [], rank=8, generator=Generator(16, seed=1)).W
 
     def answer(W):  # the trained modes alone: the data's matched motion would hold what they miss
         estimator = Estimator(InverseProblem(scene), replace(Options.from_scene(scene), matched_motion="off"), W)
@@ -243,10 +243,10 @@ def test_the_half_rank_shift_is_where_an_estimate_at_half_the_rank_goes(tmp_path
 
     estimator, theta = answer(W)
     shift = half_rank_shift(estimator, theta)
-    _, half = answer(W[:, :6])
-    print(f"rank 12: {theta[0]:.4f}; cut to 6 on the surrogate {theta[0] * np.exp(shift[0]):.4f}, "
-          f"estimated at rank 6 {half[0]:.4f}")
-    assert abs(shift[0]) > 0.01  # the case moves (measured -3.4 %)
+    _, half = answer(W[:, :4])
+    print(f"rank 8: {theta[0]:.4f}; cut to 4 on the surrogate {theta[0] * np.exp(shift[0]):.4f}, "
+          f"estimated at rank 4 {half[0]:.4f}")
+    assert abs(shift[0]) > 0.02  # the case moves (measured -3.8 %)
     assert abs(np.log(half[0] / theta[0]) - shift[0]) < 0.05 * abs(shift[0])
 
     fit = {"shift_at_half_rank": {"inclusion.E": float(np.expm1(shift[0]))}, "shift_at_half_rank_s": [shift[0]]}
@@ -273,9 +273,11 @@ def test_the_half_rank_shift_is_where_an_estimate_at_half_the_rank_goes(tmp_path
 def test_training_on_two_ranks_where_one_holds_the_loaded_end(tmp_path):
     """A bar's loaded end on one rank of two: that rank drew no size for the wall the
     other holds, its material levels came out otherwise, and MUMPS refused blocks of 4
-    and 5 columns (INFOG(1) = -22, a user's bar). Both ranks draw for every wall now:
-    training runs, and three of the four directions are the serial ones (the fourth, the
-    least of them, is not: not yet explained)."""
+    and 5 columns (INFOG(1) = -22, a user's bar). Both ranks draw for every wall now, and
+    the bases are the serial ones. They were not, by 44 degrees in one direction: the flat
+    end's affine motions along its normal vanish to round-off, and QR had made each a
+    direction of noise, kept first (the serial bases' fourth explained 0.04 % of the
+    examples, now 21 %: the end's translation)."""
     from scipy.linalg import subspace_angles
 
     from conftest import TESTS, run_mpi_script
@@ -284,5 +286,5 @@ def test_training_on_two_ranks_where_one_holds_the_loaded_end(tmp_path):
         run_mpi_script(TESTS / "mpi" / "train_bar.py", ranks, tmp_path / f"r{ranks}.json", timeout=300)
     serial, two = (json.loads((tmp_path / f"r{r}.json").read_text()) for r in (1, 2))
     assert two["ranks_holding_the_end"] == 1
-    angles = np.sort(subspace_angles(np.array(serial["W"]), np.array(two["W"])))
-    assert np.all(angles[:3] < 1e-8), angles
+    assert np.all(subspace_angles(np.array(serial["W"]), np.array(two["W"])) < 1e-8)
+    assert min(serial["variance"]) > 0.005  # no direction of noise among the affine motions
