@@ -39,7 +39,6 @@ from pathlib import Path
 
 import numpy as np
 
-from fenics_elasto.files.images import read_label_image
 from fenics_elasto.mesh.labelmaps import coarsen, label_shells
 from fenics_elasto.mesh.repair import Shell, closed_shells, cut_by_planes, enclosed_volume, sharp_edges, triangle_areas
 from fenics_elasto.util.budget import CELLS_PER_VOLUME, check_mesh_cost
@@ -138,13 +137,14 @@ def ellipsoid_shell(organs: list[Shell], margin: float, material: str) -> Shell:
     raise RuntimeError("ellipsoid body: no scale keeps the margin")  # cannot happen: the gap grows with scale
 
 
-def _input_shells(spec: dict, folder: Path) -> tuple[Shell, list[Shell]]:
-    """The body's and the organs' shells, from surface files or a label-map image."""
+def _input_shells(spec: dict, folder: Path) -> tuple[Shell, list[Shell], np.ndarray | None]:
+    """The body's and the organs' shells, from surface files or a label-map image, and
+    the image's voxel edges (None from surface files)."""
     if spec["labels"]:
-        body, organs = label_shells(spec, folder)
-        return body or _body_shell(spec, folder, organs), organs
+        body, organs, voxels = label_shells(spec, folder)
+        return body or _body_shell(spec, folder, organs), organs, voxels
     organs = _organ_shells(spec, folder)
-    return _body_shell(spec, folder, organs), organs
+    return _body_shell(spec, folder, organs), organs, None
 
 
 def _body_shell(spec: dict, folder: Path, organs: list[Shell]) -> Shell:
@@ -588,7 +588,7 @@ def build_scene_from_spec(spec_path, out, size: float | None = None) -> Path:
     ``out/scene.msh`` and ``out/problem.toml``; returns the problem.toml path."""
     spec_path, out = Path(spec_path), Path(out)
     spec = read_spec(spec_path)
-    body, organs = _input_shells(spec, spec_path.parent)
+    body, organs, voxels = _input_shells(spec, spec_path.parent)
     size, organ_size = _sizes(spec, body, size)
     if spec["labels"]:  # voxel surfaces: about one vertex per boundary voxel, often far finer than organ_size
         organs = coarsen(organs, organ_size)
@@ -619,8 +619,5 @@ def build_scene_from_spec(spec_path, out, size: float | None = None) -> Path:
     log.info(f"{counts['tetrahedra']} quadratic tetrahedra (curved to the surfaces{straight}), "
         f"{counts['nodes']} nodes -> {out / 'scene.msh'}")
     problem = out / "problem.toml"
-    voxels = None
-    if spec["labels"]:  # the source's segmentation error is a part of sigma (inverse/uncertainty/voxels.py)
-        voxels = read_label_image(spec_path.parent / spec["labels"]["image"], "labels.image").affine[:3, :3]
     problem.write_text(problem_toml(spec, shells, "scene.msh", voxels))
     return problem

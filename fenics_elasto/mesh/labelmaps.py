@@ -109,9 +109,10 @@ def _shells(interfaces: Interfaces, inside: list[int], label: str, role: str, na
     return shells_of(points, triangles, label, role, name)
 
 
-def label_shells(spec: dict, folder: Path) -> tuple[Shell | None, list[Shell]]:
+def label_shells(spec: dict, folder: Path) -> tuple[Shell | None, list[Shell], np.ndarray]:
     """The body's shell (None when the spec puts a box or an ellipsoid around the
-    organs) and the regions' and cavities' shells, from the spec's label-map image."""
+    organs), the regions' and cavities' shells, from the spec's label-map image, and its
+    voxel's edges (columns, world coordinates: the segmentation's error, uncertainty/voxels.py)."""
     file = spec["labels"]["image"]
     label = f"labels.image ({file})"
     image = read_label_image(folder / file, label)
@@ -125,12 +126,13 @@ def label_shells(spec: dict, folder: Path) -> tuple[Shell | None, list[Shell]]:
     spacing = " x ".join(f"{s:.3g}" for s in image.spacing)
     log.info(f"{label}: {' x '.join(map(str, compact.shape))} voxels of {spacing} {spec['units']}")
     organs = [s for k, p in enumerate(parts) for s in _shells(interfaces, [2 + k], f"{p.describe()} of {file}", p.role, p.name)]
+    edges = np.asarray(image.affine, float)[:3, :3]
     if not has_body:
-        return None, organs
+        return None, organs, edges
     body = _shells(interfaces, list(range(1, 2 + len(parts))), f"body (label {spec['body']['label']}) of {file}", "body",
                    spec["body"]["material"])
     require(len(body) == 1, f"{label}: body.label {spec['body']['label']}: {len(body)} separate pieces; the body must be one")
-    return body[0], organs
+    return body[0], organs, edges
 
 
 # Quadric decimation can fold a triangle through its neighbours (a real kidney's tumour,
