@@ -3,8 +3,9 @@ after them, in order (issue #35).
 
 One estimate runs in this process, unprofiled. Its progress lines and every application
 of the factorization (a block of right-hand sides, or one) are printed with the seconds
-since the command began (reading the problem comes first), so that the gaps between them are the work in between: inner
-fits, the surrogate's algebra, the mesh part's degree-3 smoothing.
+since the command began (reading the problem comes first), so that the gaps between
+them are the work in between: inner fits, the surrogate's algebra, the mesh part's
+degree-3 smoothing.
 
     .venv/bin/python benchmarks/critical_path.py PROBLEM.toml BASES.npz [--out DIR]
 
@@ -74,17 +75,14 @@ if __name__ == "__main__":
     arguments = parser.parse_args()
     trace_factor_applications()
     ready_stamp()
-    import fenics_elasto.util.logs as logs
+    import fenics_elasto.app.cli as cli
 
-    show = logs.show
+    show = cli.show
 
     def show_stamped(*args, **kwargs) -> None:  # the command line's own handlers, stamped
         show(*args, **kwargs)
         for handler in log.handlers:
             handler.setFormatter(Stamped())
-
-    logs.show = show_stamped
-    import fenics_elasto.app.cli as cli
 
     cli.show = show_stamped  # type: ignore[attr-defined]
     START[0] = time.perf_counter()

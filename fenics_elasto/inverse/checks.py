@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import hashlib
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -61,10 +62,15 @@ class GroupTarget:
     where: str  # the file, as _target_file names it
     state: str = ""
 
+    @cached_property
+    def rim(self) -> np.ndarray:
+        """Whether each node's closest point lies on the target's rim (Surface.on_rim)."""
+        return self.surface.on_rim(self.x) if len(self.x) else np.zeros(0, bool)
+
     @property
     def motion(self) -> float:
         """How far the nodes the target covers lie from it (their 95th percentile)."""
-        covered = self.distance[~self.surface.on_rim(self.x)] if len(self.x) else self.distance
+        covered = self.distance[~self.rim]
         return float(np.percentile(covered, 95)) if len(covered) else 0.0
 
     @property
@@ -109,8 +115,11 @@ BEYOND_EDGE = 5.0
 def check_covered(targets: list[GroupTarget]) -> None:
     """Each group's target covers the whole group, against the motion its state's groups
     show (BEYOND_EDGE)."""
+    motion: dict[str, float] = {}
     for t in targets:
-        _check_covered(t, max(other.motion for other in targets if other.state == t.state))
+        motion[t.state] = max(motion.get(t.state, 0.0), t.motion)
+    for t in targets:
+        _check_covered(t, motion[t.state])
 
 
 def _check_covered(t: GroupTarget, motion: float) -> None:
@@ -118,12 +127,12 @@ def _check_covered(t: GroupTarget, motion: float) -> None:
     naming the group, its file and the share left out (``motion``: the state's)."""
     if len(t.x) == 0:
         return
-    rim = t.surface.on_rim(t.x)
-    beyond = rim & (t.distance > BEYOND_EDGE * motion)
+    beyond = t.rim & (t.distance > BEYOND_EDGE * motion)
     if beyond.mean() > UNCOVERED:
         raise UserError(f"{t.where}: covers only part of {t.group}: {100 * beyond.mean():.0f} % of its nodes lie "
-                        f"beyond the target's edge, up to {t.distance[beyond].max():.3g} from it (the rest within "
-                        f"{motion:.3g}); give the group's whole surface, or match the part it covers as a group of its own")
+                        f"beyond the target's edge, up to {t.distance[beyond].max():.3g} from it (the nodes its targets "
+                        f"cover lie within {motion:.3g}); give the group's whole surface, or match the part it covers as "
+                        "a group of its own")
 
 
 def _point_files(problem: InverseProblem, key: str) -> str:

@@ -71,7 +71,7 @@ def target_edges(problem) -> list[np.ndarray | None]:
         for span, term in zip(misfit.slices, misfit.terms):
             if isinstance(term, SurfaceTerm):
                 for local, which in enumerate(term.surface_of):
-                    rows[span.start + local] = getattr(term.surfaces[which], "voxels", None)
+                    rows[span.start + local] = term.surfaces[which].voxels
         out += rows
     return out
 
