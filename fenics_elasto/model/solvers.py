@@ -651,6 +651,12 @@ class IterativeSolver(LinearSolver):
     def _krylov(self, b, x) -> None:
         _krylov(self, b, x, self.name, ": use [solver] method = \"direct\", or a larger rtol")
 
+    def converge_from_start(self, rtol: float) -> None:
+        """Stop each solve once its residual is ``rtol`` of its start's, not of ||b||: for
+        solves started from a close guess, whose correction is then found to ``rtol``
+        whatever share of b it is (the start's own rtol would be that share times it)."""
+        self.ksp.setConvergenceTest(_FromStart(rtol, MAX_ITERATIONS))
+
 
 class TwoLevelSolver(IterativeSolver):
     """CG on K_h (a space one degree higher than the model's, same mesh) preconditioned by
@@ -673,6 +679,23 @@ class TwoLevelSolver(IterativeSolver):
     def _precondition(self, pc: PETSc.PC) -> None:
         pc.setType(PETSc.PC.Type.PYTHON)
         pc.setPythonContext(self._cycle)
+
+
+class _FromStart:
+    """A KSP convergence test: converged once the residual is ``rtol`` of the first one."""
+
+    def __init__(self, rtol: float, max_it: int):
+        self.rtol, self.max_it, self.first = rtol, max_it, 0.0
+
+    def __call__(self, ksp: PETSc.KSP, its: int, rnorm: float) -> int:
+        reason = PETSc.KSP.ConvergedReason
+        if its == 0:
+            self.first = rnorm
+        if not np.isfinite(rnorm):
+            return reason.DIVERGED_NANORINF
+        if rnorm <= self.rtol * self.first:
+            return reason.CONVERGED_RTOL if its else reason.CONVERGED_ATOL
+        return reason.DIVERGED_ITS if its >= self.max_it else reason.ITERATING
 
 
 class _TwoLevel:

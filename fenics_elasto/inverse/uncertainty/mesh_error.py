@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from dataclasses import replace
 
 import numpy as np
 import ufl
@@ -47,11 +46,12 @@ from fenics_elasto.model.stiffness import stiffness_form
 from fenics_elasto.util.budget import available_memory
 from fenics_elasto.util.logs import log
 
-# The correction the degree-3 solve finds is ~1 % of u (the phantom: 3e-3 of 0.3); its
-# mesh part of sigma to 2 digits needs u to ~1e-4, not the estimate's 1e-8 (measured on
-# the family's order-1 source: 1e-6 and the seeded start gave the mesh part 1.48 as before,
-# the step 15.7 s -> 11.3 s; AMG's setup, 5 s, is most of the rest).
-HIGHER_DEGREE_RTOL = 1e-6
+# CG finds the correction the degree-3 solve makes to the interpolated answer, to this
+# share of the start's residual (a share of ||b|| asked it to whatever share of b the
+# correction was: a bar's mesh part came out 0.44 on one rank and 0.42 on two, 0.42 both
+# at 1e-10). The phantom at rank 80: 1e-2, 1e-3, 1e-4, 1e-6 took 4, 7, 9, 14 iterations
+# for a mesh part of 0.475, 0.518, 0.531, 0.530 (0.530 in 10 at 1e-6 of ||b||).
+CORRECTION_RTOL = 1e-4
 
 
 # Where a factorization runs ahead, the degree-3 set-up is made beside it if its matrix
@@ -142,7 +142,7 @@ class HigherDegreeModel:
         ones as made), clamped where the scene is, and every loaded wall held at each
         field (several states: one each): one K and one CG for them all, each solve
         started from its field itself (interpolated: CG finds only the correction), to
-        HIGHER_DEGREE_RTOL or the scene's tighter [solver] rtol. ``coarse``: the factors of
+        CORRECTION_RTOL of the start's residual. ``coarse``: the factors of
         the fields' own K at these materials (or near them) with the same walls clamped,
         which make CG's preconditioner a two-level cycle (model.solvers.TwoLevelSolver);
         without them, AMG (model.solvers.IterativeSolver). ``stats``: where to count the
@@ -158,7 +158,6 @@ class HigherDegreeModel:
         indices, owned_count = self.bc.dof_indices()
         start = WarmStart(scene.mesh.comm)
         settings = SolverSettings.from_config(scene.config.get("solver"))
-        settings = replace(settings, rtol=max(settings.rtol, HIGHER_DEGREE_RTOL))
         stats = stats or SolverStats("iterative")
         if coarse is None:
             owned = V.tabulate_dof_coordinates()[: V.dofmap.index_map.size_local, : scene.mesh.geometry.dim]
@@ -170,6 +169,7 @@ class HigherDegreeModel:
                 interpolation = dolfinx.fem.petsc.interpolation_matrix(self.fields_space, V)
                 interpolation.assemble()
             solver = TwoLevelSolver(A, indices[:owned_count], settings, stats, start, coarse, interpolation)
+        solver.converge_from_start(CORRECTION_RTOL)
         form = stiffness_form(scene, V, E, nu)
         try:
             return [self._solve(form, u, solver, start) for u in fields]
