@@ -61,9 +61,10 @@ class Estimate(Solution):
     the estimated constants; ``std`` is NaN and ``ci95`` (NaN, NaN) where no uncertainty
     was computed (a run interrupted while it was being worked out, or one whose inner
     solver keeps no response of the controls; a run interrupted earlier has the Laplace
-    interval at its best value). ``materials`` holds every region's E and nu,
-    ``forces`` the recovered nodal forces of the loaded nodes (flat), ``warnings`` what
-    the estimate found worth a warning, ``record`` all of result.json.
+    interval at its best value); ``parts`` splits each std by its sources. ``materials``
+    holds every region's E and nu, ``forces`` the recovered nodal forces of the loaded
+    nodes (flat), ``warnings`` what the estimate found worth a warning, ``record`` all of
+    result.json.
     """
 
     def __init__(self, scene: Scene, outcome: EstimateResult, problem: InverseProblem,
@@ -91,6 +92,13 @@ class Estimate(Solution):
             low, high = self._uncertainty(label).get("ci95", (math.nan, math.nan))
             out[label] = (float(low), float(high))
         return out
+
+    @property
+    def parts(self) -> dict[str, dict[str, float]]:
+        """Each estimated constant's sigma by its sources ("noise", "mesh", "bases",
+        "target_offset", "voxels", ...: result.json's ``parts``); empty if not computed."""
+        return {label: {part: float(v) for part, v in self._uncertainty(label).get("parts", {}).items()}
+                for label in self.values}
 
     def _uncertainty(self, label: str) -> dict[str, Any]:
         entry = (self.record.get("uncertainty") or {}).get(label)

@@ -2,6 +2,7 @@
 the command line's answer, a scene built from a .msh, the truth of a simulation."""
 
 import json
+import math
 import os
 
 import numpy as np
@@ -37,6 +38,8 @@ def test_letter_a_from_python_is_the_command_lines_answer(letter, tmp_path):
     assert result.values["letter.nu"] == pytest.approx(0.35, abs=2e-3)
     low, high = result.ci95["letter.nu"]
     assert low < 0.35 < high and 0 < result.std["letter.nu"] < 0.01
+    parts = result.parts["letter.nu"]  # sigma by its sources: they make up the std
+    assert parts["noise"] > 0 and result.std["letter.nu"] == pytest.approx(math.hypot(*parts.values()), rel=1e-9), parts
     assert result.u.x.array.size > 1000 and isinstance(result.warnings, list)
     assert json.loads(result.to_json())["materials"]["letter"]["nu"] == result.values["letter.nu"]
     assert "letter.nu = 0.3" in str(result) and "±" in str(result)
