@@ -257,23 +257,59 @@ class Patch:
 # of an edge from a block's bottom face kept gmsh at 100 % CPU past ten minutes, deaf to
 # Ctrl-C; a label map's staircase cut at 2.6e-4 meshes.
 SLIVER_SHARE = 1e-4
+# Where a plane crosses the surface and passes that close to a corner by chance (a label
+# map's smoothed staircase: 1 voxel grid in 10 of a user's), it is moved along its normal
+# by steps of this share of that triangle's longest edge, up to NUDGE_STEPS of them, to
+# where it clears every corner by a step; never where the surface it nears lies along the
+# plane (within NUDGE_PARALLEL of its normal: a face the user meant to cut at).
+NUDGE_SHARE, NUDGE_STEPS, NUDGE_PARALLEL = 0.01, 10, 0.95
 
 
-def _refuse_a_sliver(body: Shell, patch: Patch, where: str, units: str) -> None:
-    """One line where ``patch``'s plane passes a hair from a corner of a triangle it cuts."""
-    normal = patch.normal / np.linalg.norm(patch.normal)
-    d = ((body.points - patch.point) @ normal)[body.triangles]
-    cut = (d.min(axis=1) < 0) & (d.max(axis=1) > 0)
-    if not cut.any():
-        return
+def _closest_corner(body: Shell, point: np.ndarray, normal: np.ndarray) -> tuple[float, float, float, int]:
+    """(the least gap / longest edge over the triangles the plane cuts, that gap, that
+    triangle's longest edge, its row in body.triangles); a share of inf where it cuts none."""
+    d = ((body.points - point) @ normal)[body.triangles]
+    cut = np.flatnonzero((d.min(axis=1) < 0) & (d.max(axis=1) > 0))
+    if not len(cut):
+        return np.inf, np.inf, np.inf, -1
     corners = body.points[body.triangles[cut]]
     longest = np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2).max(axis=1)
     gap = np.where(d[cut] != 0, np.abs(d[cut]), np.inf).min(axis=1)
     worst = int(np.argmin(gap / longest))
-    require(gap[worst] >= SLIVER_SHARE * longest[worst],
-            f"{where}: its plane passes {gap[worst]:.3g} {units} from the body's surface points it cuts between "
-            f"(edges of {longest[worst]:.3g}): the strip it cuts off is too thin to mesh; move the plane at least "
-            f"{0.1 * longest[worst]:.3g} {units} from them")
+    return float(gap[worst] / longest[worst]), float(gap[worst]), float(longest[worst]), int(cut[worst])
+
+
+def _clear_of_slivers(body: Shell, patch: Patch, where: str, units: str) -> Patch:
+    """``patch``, or its plane moved a little along its normal where it passes a hair
+    from a corner of a triangle it cuts (NUDGE_SHARE, said in one line); one line refusing
+    it where no small move clears every corner, or where the surface there lies along it."""
+    normal = patch.normal / np.linalg.norm(patch.normal)
+    share, gap, longest, row = _closest_corner(body, patch.point, normal)
+    if share >= SLIVER_SHARE:
+        return patch
+    refusal = (f"{where}: its plane passes {gap:.3g} {units} from the body's surface points it cuts between (edges of "
+               f"{longest:.3g}): the strip it cuts off is too thin to mesh; move the plane at least "
+               f"{0.1 * longest:.3g} {units} from them")
+    require(not _along_the_plane(body, row, normal), refusal)
+    for step in (k * sign for k in range(1, NUDGE_STEPS + 1) for sign in (1, -1)):
+        moved = patch.point + step * NUDGE_SHARE * longest * normal
+        if _closest_corner(body, moved, normal)[0] >= NUDGE_SHARE:
+            log.info(f"note: {where}: its plane passed {gap:.3g} {units} from a surface point it cuts past (edges of "
+                     f"{longest:.3g}), too close to mesh; moved {step * NUDGE_SHARE * longest:+.3g} {units} along its "
+                     "normal, clear of every point")
+            return Patch(patch.name, moved, patch.normal)
+    raise UserError(refusal)
+
+
+def _along_the_plane(body: Shell, row: int, normal: np.ndarray) -> bool:
+    """Whether a triangle sharing a corner with triangle ``row`` lies along the plane:
+    the plane nears a face there, and moving it would cut a band along that face."""
+    corners = body.triangles[row]
+    near = np.flatnonzero(np.isin(body.triangles, corners).any(axis=1))
+    a, b, c = (body.points[body.triangles[near, i]] for i in range(3))
+    n = np.cross(b - a, c - a)
+    cosine = np.abs(n @ normal) / np.maximum(np.linalg.norm(n, axis=1), 1e-300)
+    return bool((cosine > NUDGE_PARALLEL).any())
 
 
 def _patch_bits(points: np.ndarray, triangles: np.ndarray, patches: list[Patch]) -> np.ndarray:
@@ -601,8 +637,7 @@ def build_scene_from_spec(spec_path, out, size: float | None = None) -> Path:
     parents = nest(shells, TOUCH_RATIO * organ_size)
     patches = [Patch(name, np.array(p["side"]["point"]), np.array(p["side"]["normal"])) for name, p in spec["patches"].items()]
     if patches:
-        for patch in patches:
-            _refuse_a_sliver(body, patch, f"{spec_path}: patches.{patch.name}", spec["units"])
+        patches = [_clear_of_slivers(body, patch, f"{spec_path}: patches.{patch.name}", spec["units"]) for patch in patches]
         shells[0] = cut_by_planes(body, [(p.point, p.normal) for p in patches])
         sides = shells[0].patches
         assert sides is not None  # cut_by_planes marks them

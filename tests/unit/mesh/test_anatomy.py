@@ -675,12 +675,39 @@ def test_the_published_kidney_gets_through(tmp_path, capsys):
 def test_a_patch_plane_a_hair_off_a_face_is_refused():
     """A plane 1e-6 above a block's bottom face cuts its sides into a strip gmsh cannot
     mesh: a user's scene ran at 100 % CPU past ten minutes, deaf to Ctrl-C. Refused in
-    one line; a plane 1 off the face is not."""
-    from fenics_elasto.mesh.anatomy import Patch, _refuse_a_sliver, box_shell
+    one line, not moved (it would cut a band along the face); a plane 1 off the face is
+    kept as given."""
+    from fenics_elasto.mesh.anatomy import Patch, _clear_of_slivers, box_shell
     from fenics_elasto.util.errors import UserError
 
     body = box_shell(np.array([-12.0, -10, -10]), np.array([12.0, 10, 10]), "tissue")
     down = np.array([0.0, 0.0, -1.0])
-    _refuse_a_sliver(body, Patch("bottom", np.array([0.0, 0.0, -9.0]), down), "spec: patches.bottom", "mm")
+    kept = Patch("bottom", np.array([0.0, 0.0, -9.0]), down)
+    assert _clear_of_slivers(body, kept, "spec: patches.bottom", "mm") is kept
     with pytest.raises(UserError, match=r"spec: patches.bottom: its plane passes 1e-06 mm from .* too thin to mesh"):
-        _refuse_a_sliver(body, Patch("bottom", np.array([0.0, 0.0, -10 + 1e-6]), down), "spec: patches.bottom", "mm")
+        _clear_of_slivers(body, Patch("bottom", np.array([0.0, 0.0, -10 + 1e-6]), down), "spec: patches.bottom", "mm")
+
+
+def test_a_patch_plane_crossing_a_hair_from_a_point_is_moved_clear():
+    """A plane across a ball that passes 1e-6 of an edge from one of its points (a label
+    map's smoothed staircase did so on 1 voxel grid in 10 of a user's, and was refused)
+    is moved along its normal by a hundredth of an edge or a few, said in one line, and
+    then clears every point it cuts past by that much."""
+    import pyvista as pv
+
+    from fenics_elasto.mesh.anatomy import NUDGE_SHARE, NUDGE_STEPS, Patch, _clear_of_slivers, _closest_corner
+    from fenics_elasto.mesh.repair import Shell
+
+    ball = pv.Icosphere(radius=10.0, nsub=3)
+    body = Shell("body", "tissue", "body", np.asarray(ball.points, float), ball.regular_faces.astype(np.int64))
+    edge = float(np.linalg.norm(body.points[body.triangles[0, 0]] - body.points[body.triangles[0, 1]]))
+    normal = np.array([1.0, 0.2, 0.1]) / np.linalg.norm([1.0, 0.2, 0.1])
+    vertex = body.points[np.argmin(np.abs(body.points @ normal - 3.0))]  # well inside the ball's span
+    given = Patch("side", vertex + 1e-6 * edge * normal, normal)
+    lines: list[str] = []
+    with logged(lines):
+        moved = _clear_of_slivers(body, given, "spec: patches.side", "mm")
+    shift = float((moved.point - given.point) @ normal)
+    assert 0 < abs(shift) <= NUDGE_STEPS * NUDGE_SHARE * 1.5 * edge, shift
+    assert _closest_corner(body, moved.point, normal)[0] >= NUDGE_SHARE
+    assert any(line.startswith("note: spec: patches.side: its plane passed") and "moved" in line for line in lines), lines
