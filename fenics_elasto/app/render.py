@@ -70,29 +70,30 @@ def render(
     dim: int = 3,
     fixed=(),  # names of clamped groups: drawn muted
     units: str = "",
+    matched=None,  # names of the groups the target is for (None: every group drawn)
 ) -> Path:
     """Write a PNG of a solution: 2D or 3D (see the module docstring)."""
-    plotter = picture(groups, reference, context, target, title, dim, fixed, units)
+    plotter = picture(groups, reference, context, target, title, dim, fixed, units, matched=matched)
     plotter.screenshot(str(path))
     plotter.close()
     return Path(path)
 
 
 def picture(groups: dict, reference: dict | None = None, context=None, target=None, title: str = "", dim: int = 3,
-            fixed=(), units: str = "", off_screen: bool = True) -> pv.Plotter:
+            fixed=(), units: str = "", off_screen: bool = True, matched=None) -> pv.Plotter:
     """The plotter of a solution's picture, drawn but not shown (``render``'s arguments)."""
     if dim == 2:
         return _picture_2d(groups, reference, context, target, title, off_screen)
-    return _picture_3d(groups, context, target, title, fixed, units, off_screen)
+    return _picture_3d(groups, context, target, title, fixed, units, off_screen, matched)
 
 
 # --------------------------------------------------------------------------- 3D
 
 
-def _picture_3d(groups, context, target, title, fixed, units, off_screen: bool) -> pv.Plotter:
+def _picture_3d(groups, context, target, title, fixed, units, off_screen: bool, matched=None) -> pv.Plotter:
     organs = {n: m for n, m in groups.items() if n not in fixed and m is not None and m.n_points}
     muted = [groups[n] for n in fixed if n in groups and groups[n] is not None and groups[n].n_points]
-    panels = _panels(organs, target, units)
+    panels = _panels(organs, target, units, matched)
     width = 1400 if len(panels) == 1 else 1000 * len(panels)
     plotter = offscreen_plotter(off_screen, shape=(2, len(panels)), row_weights=[1, 9], groups=[(0, np.s_[:])],
                                 window_size=(width, 1000), border=False)
@@ -102,9 +103,11 @@ def _picture_3d(groups, context, target, title, fixed, units, off_screen: bool) 
         plotter.subplot(1, k)
         legend = _add_surroundings(plotter, context, muted)
         clim = _shared_range(organs.values(), scalars, 0.98 if scalars == "distance" else 1.0)
-        for i, mesh in enumerate(organs.values()):
+        coloured = [m for m in organs.values() if scalars in m.point_data]
+        for i, mesh in enumerate(coloured):
             plotter.add_mesh(mesh, scalars=scalars, cmap=cmap, clim=clim, smooth_shading=True,
                              scalar_bar_args=_bar(bar), show_scalar_bar=i == 0)
+        legend += _add_unmatched(plotter, [m for m in organs.values() if scalars not in m.point_data])
         legend += _add_motion(plotter, organs) if scalars == "|u|" else []
         legend += _add_target(plotter, target) if target is not None and k == len(panels) - 1 else []
         _add_names(plotter, organs)
@@ -115,14 +118,17 @@ def _picture_3d(groups, context, target, title, fixed, units, off_screen: bool) 
     return plotter
 
 
-def _panels(organs: dict, target, units: str) -> list[tuple]:
+def _panels(organs: dict, target, units: str, matched=None) -> list[tuple]:
     """(scalars, heading, colour bar title, colour map) per panel: the motion, and with a
-    target surface, the distance to it (computed here, onto the organs)."""
+    target surface, the distance to it (computed here, onto the organs ``matched`` names;
+    None: every organ). An organ with no target of its own is not coloured by the
+    distance to another's (a bar's loaded end, moved in its own plane, read 0.25 away)."""
     unit = f" ({units})" if units else ""
     motion = ("|u|", "", f"displacement{unit}", "viridis")  # (scalar bars cannot draw "|" or "‖")
-    if target is None or not _has_faces(target) or not organs:
+    measured = [m for n, m in organs.items() if matched is None or n in matched]
+    if target is None or not _has_faces(target) or not measured:
         return [motion]
-    for mesh in organs.values():
+    for mesh in measured:
         mesh.point_data["distance"] = distance_to(target, mesh.points)
     return [(*motion[:1], "how it moved", *motion[2:]),
             ("distance", "how well it fits the target", f"distance to target{unit}", "inferno")]
@@ -161,6 +167,13 @@ def _add_surroundings(plotter, context, muted) -> list:
     if muted:
         legend.append(["clamped (fixed)", LEGEND_TEXT[FIXED_COLOUR]])
     return legend
+
+
+def _add_unmatched(plotter, meshes: list) -> list:
+    """Groups with no target, plain in the distance panel. Legend entries."""
+    for mesh in meshes:
+        plotter.add_mesh(mesh, color=BODY_COLOUR, opacity=0.5, smooth_shading=True, show_scalar_bar=False)
+    return [["no target (not matched)", LEGEND_TEXT[BODY_COLOUR]]] if meshes else []
 
 
 def _add_motion(plotter, organs: dict) -> list:

@@ -45,4 +45,4 @@ def picture_arguments(scene, u: fem.Function, matched: dict | None = None, have_
     return {"groups": {g: polydata(*d) for g, d in data.items() if d is not None},
             "reference": {g: polydata(*d, deformed=False) for g, d in data.items() if d is not None},
             "context": polydata(*context), "dim": scene.gdim, "fixed": scene.fixed,
-            "units": scene.config.get("units") or ""}
+            "units": scene.config.get("units") or "", "matched": list(scene.matched)}

@@ -69,6 +69,17 @@ def test_3d_picture(tmp_path, with_target):
         assert groups["prostate_surface"].point_data["distance"] == pytest.approx(0.0, abs=1e-3)
 
 
+def test_a_group_without_a_target_is_not_coloured_by_anothers(tmp_path):
+    """A bar's loaded end, moved in its own plane and not matched, was coloured by its
+    distance to the sides' target (0.25, the panel's top): only matched groups are."""
+    groups = {"end": moved_sphere((0, 0, 3), 1.0, (0, 0, 0.3)), "sides": moved_sphere((0, 0, 0), 1.0, (0, 0, 0.1))}
+    target = pv.Icosphere(radius=1.0, center=(0, 0, 0.1), nsub=4)
+    path = render(tmp_path / "picture.png", groups, target=target, title="estimate", matched=["sides"])
+    assert_picture(path, 0.05)
+    assert "distance" not in groups["end"].point_data
+    assert groups["sides"].point_data["distance"] == pytest.approx(0.0, abs=1e-3)
+
+
 def test_2d_picture(tmp_path):
     circle = pv.Circle(radius=1.0, resolution=60)
     cells = circle.triangulate()
