@@ -156,6 +156,9 @@ def folded_tetrahedra(gmsh) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(tets, np.int64)[folded], np.asarray(nodes, np.int64).reshape(-1, 10)[folded]
 
 
+STRAIGHTENING_ROUNDS = 50  # untangle: at most this many rounds of straightening folded cells
+
+
 def untangle(gmsh) -> int:
     """Unfold the curved tetrahedra that curving a mesh's boundary folded over (a thin
     cell at a curved wall whose midpoint passes its opposite face): gmsh's high-order
@@ -172,7 +175,10 @@ def untangle(gmsh) -> int:
     gmsh.option.setNumber("Mesh.HighOrderPassMax", 3)
     gmsh.model.mesh.optimize("HighOrder")
     straightened = 0
-    for _ in range(3):  # straightening one cell's edges can fold a neighbour sharing them
+    # Straightening one cell's edges can fold a neighbour sharing them, and that one the
+    # next (a prostate label map's scene: 79, 3, 1, 1 cells in four rounds, refused when
+    # three were allowed); a straight cell cannot fold, so the rounds end.
+    for _round in range(STRAIGHTENING_ROUNDS):
         _, nodes = folded_tetrahedra(gmsh)
         if not len(nodes):
             break
