@@ -14,8 +14,9 @@ its ``label``. ``label_shells``:
    or cavity on the body's outer boundary, none touching another, the body off the image
    border -- one line each, naming the spec keys and labels;
 4. smooths each closed surface without shrinking it and hands it to the surface-file
-   path's own checks (repair.shells_of), so the nesting, meshing and curving that follow
-   are the surface files' (anatomy.py).
+   path's own checks and repairs (repair.solid_shells: where two voxels touch by an edge
+   only, the surface is pinched there and is rebuilt from what it encloses), so the
+   nesting, meshing and curving that follow are the surface files' (anatomy.py).
 
 ``coarsen`` then brings each shell down to about organ_size / 2 edges once the sizes
 are known (SurfaceNets gives about one vertex per boundary voxel).
@@ -30,7 +31,7 @@ import numpy as np
 
 from fenics_elasto.files.images import LabelImage, read_label_image
 from fenics_elasto.geometry.label_surfaces import Interfaces, coarsened, smoothed, surface_nets
-from fenics_elasto.mesh.repair import NotClosed, Shell, enclosed_volume, shells_of
+from fenics_elasto.mesh.repair import NotClosed, Shell, enclosed_volume, shells_of, solid_shells
 from fenics_elasto.util.errors import require
 from fenics_elasto.util.logs import log
 
@@ -106,7 +107,7 @@ def _shells(interfaces: Interfaces, inside: list[int], label: str, role: str, na
     points = smoothed(points, triangles)
     if enclosed_volume(points, triangles) < 0:  # SurfaceNets orients by label order: outward here, not a repair
         triangles = triangles[:, [0, 2, 1]]
-    return shells_of(points, triangles, label, role, name)
+    return solid_shells(points, triangles, label, role, name)
 
 
 def label_shells(spec: dict, folder: Path) -> tuple[Shell | None, list[Shell], np.ndarray]:
