@@ -107,7 +107,11 @@ def coarsened(points: np.ndarray, triangles: np.ndarray, organ_size: float,
 
 
 def label_surface(labels: np.ndarray, affine: np.ndarray, inside) -> tuple[np.ndarray, np.ndarray]:
-    """The smoothed surface around the union of the labels ``inside`` (world coordinates)."""
-    mask = np.isin(labels, list(inside)).astype(np.int32)
+    """The smoothed surface around the union of the labels ``inside`` (world coordinates),
+    its holes filled: a gland's surface is its outer one, a nodule held inside it is
+    another group's (its own labels)."""
+    from scipy.ndimage import binary_fill_holes
+
+    mask = binary_fill_holes(np.isin(labels, list(inside))).astype(np.int32)
     points, triangles = surface_nets(mask, affine).boundary_of([1])
     return smoothed(points, triangles), triangles

@@ -11,7 +11,8 @@ its ``label``. ``label_shells``:
    per region and per cavity -- and runs SurfaceNets once on that (geometry/
    label_surfaces.py), anisotropic voxels as they are;
 3. checks from the interfaces' two sides that the labels nest as a scene must: no region
-   or cavity on the body's outer boundary, none touching another, the body off the image
+   or cavity on the body's outer boundary, none touching another unless held wholly
+   inside it (a region in a region: a nodule in a gland), the body off the image
    border -- one line each, naming the spec keys and labels;
 4. smooths each closed surface without shrinking it and hands it to the surface-file
    path's own checks and repairs (repair.solid_shells: where two voxels touch by an edge
@@ -78,19 +79,48 @@ def compact_labels(image: LabelImage, spec: dict, parts: list[Part]) -> np.ndarr
     return compact
 
 
-def _check_nesting(sides: np.ndarray, parts: list[Part], has_body: bool, label: str) -> None:
-    """Every part wrapped in body material: no part on the outer boundary (with a label
-    body), no two parts touching."""
+def _check_nesting(sides: np.ndarray, parts: list[Part], has_body: bool, label: str) -> dict[int, int]:
+    """Every part wrapped in body material or held wholly inside a region (a nodule in a
+    gland): no part on the outer boundary (with a label body), no two parts touching
+    otherwise. Returns each region held inside another: its index -> the other's."""
     pairs = {tuple(p) for p in np.unique(sides, axis=0).tolist()}
+    inside = _held_inside(pairs, parts)
     for a, b in sorted(pairs):
         if a == OUTSIDE and b >= 2 and has_body:
             part = parts[b - 2]
             where = "leaks out of the body: it reaches the body's outer boundary" if part.role == "region" else \
                 "opens to the outside of the body"
             require(False, f"{label}: {part.describe()} {where}; it must be wrapped in the body's material")
-        if a >= 2:
+        if a >= 2 and inside.get(a - 2) != b - 2 and inside.get(b - 2) != a - 2:
             require(False, f"{label}: {parts[a - 2].describe()} and {parts[b - 2].describe()} touch; the scene "
-                    "needs the body's material between them")
+                    "needs the body's material between them, or one held wholly inside the other")
+    return inside
+
+
+def _held_inside(pairs: set, parts: list[Part]) -> dict[int, int]:
+    """The regions each held wholly inside another region: part index -> the other's. A
+    region is held inside another where that one is all it borders, the regions held
+    inside itself aside (found from the innermost out)."""
+    borders: dict[int, set[int]] = {k: set() for k in range(len(parts))}
+    for a, b in pairs:
+        for x, y in ((a, b), (b, a)):
+            if x >= 2:
+                borders[x - 2].add(y)
+    inside: dict[int, int] = {}
+    found = True
+    while found:
+        found = False
+        for k in set(borders) - set(inside):
+            outer = borders[k] - {2 + c for c, p in inside.items() if p == k}
+            if len(outer) == 1 and (o := next(iter(outer)) - 2) >= 0 and parts[k].role == parts[o].role == "region":
+                inside[k], found = o, True
+    return inside
+
+
+def _within(k: int, inside: dict[int, int]) -> list[int]:
+    """Part k and every part held inside it, at any depth."""
+    held = [c for c, p in inside.items() if p == k]
+    return [k] + [d for c in held for d in _within(c, inside)]
 
 
 def _check_border(compact: np.ndarray, label: str) -> None:
@@ -123,10 +153,12 @@ def label_shells(spec: dict, folder: Path) -> tuple[Shell | None, list[Shell], n
     has_body = spec["body"]["label"] is not None
     _check_border(compact, label)
     interfaces = surface_nets(compact, image.affine)
-    _check_nesting(interfaces.sides, parts, has_body, label)
+    inside = _check_nesting(interfaces.sides, parts, has_body, label)
     spacing = " x ".join(f"{s:.3g}" for s in image.spacing)
     log.info(f"{label}: {' x '.join(map(str, compact.shape))} voxels of {spacing} {spec['units']}")
-    organs = [s for k, p in enumerate(parts) for s in _shells(interfaces, [2 + k], f"{p.describe()} of {file}", p.role, p.name)]
+    # a region's shell encloses the regions held inside it: its surface is its outer one
+    organs = [s for k, p in enumerate(parts)
+              for s in _shells(interfaces, [2 + j for j in _within(k, inside)], f"{p.describe()} of {file}", p.role, p.name)]
     edges = np.asarray(image.affine, float)[:3, :3]
     if not has_body:
         return None, organs, edges
