@@ -260,9 +260,32 @@ def target_warnings(problem: InverseProblem, best: InnerResult, state_noise: str
     for name, misfit, spec, rows in zip(states.names, states.misfits, states.specs,
                                         states.split(best.evaluation.residual)):
         state = f"state {name}: " if states.count > 1 else ""
+        stray = stray_group(misfit, rows, problem.scene.matched)
         out += [state + line for line in _distance_warnings(misfit, spec, distances[name]) + _field_warnings(misfit, rows)
-                + _drowned_surfaces(misfit, spec, distances[name])]
+                + _drowned_surfaces(misfit, spec, distances[name]) + ([stray] if stray else [])]
     return out + _unequal_states(problem, distances, state_noise) + _repeated_states(problem)
+
+
+# One matched group fitting its target this many times worse than every other group does:
+# its target (a stale file, another state's scan, a frame slip) is the first suspect.
+STRAY_GROUP = 10.0
+
+
+def stray_group(misfit, residual: np.ndarray, groups: list[str], always: bool = False) -> str | None:
+    """A sentence naming the matched group that fits its target STRAY_GROUP times worse
+    than every other group; None where none does, unless ``always``: then each group's
+    fit, the worst first (where the targets give one surface per group)."""
+    fits = misfit.group_distances(residual, groups)
+    if len(fits) < 2:
+        return None
+    order = sorted(fits, key=fits.__getitem__, reverse=True)
+    worst, others = order[0], fits[order[1]]
+    if fits[worst] > STRAY_GROUP * others:
+        return (f"{worst} fits its target {fits[worst] / max(others, 1e-300):.3g}x worse than every other group (rms "
+                f"{fits[worst]:.3g}, the others within {others:.3g}): check its target (its file, its state, its frame)")
+    if not always:
+        return None
+    return "rms distance per group, the worst first: " + ", ".join(f"{g} {fits[g]:.3g}" for g in order)
 
 
 # Surfaces that fit this much closer than the noise they were weighed with beside landmarks

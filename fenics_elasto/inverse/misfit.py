@@ -197,16 +197,33 @@ class Misfit:
     def surface_rows(self) -> np.ndarray:
         return self.rows_of(SurfaceTerm)
 
-    def distances(self, residual: np.ndarray) -> dict:
-        """rms / max / mean distance of the surface rows and of the landmark rows."""
-        out = {}
+    def distances(self, residual: np.ndarray, groups: list[str] | None = None) -> dict:
+        """rms / max / mean distance of the surface rows and of the landmark rows; with the
+        scene's matched ``groups``, the surface's also per group (``group_distances``)."""
+        out: dict = {}
         field = self.rows_of(FieldTerm)
         landmarks = np.setdiff1d(self.landmark_rows(), field)
         for name, rows in (("surface", self.surface_rows()), ("landmarks", landmarks), ("field", field)):
             if len(rows):
                 d = np.linalg.norm(residual[rows], axis=1)
                 out[name] = {"rms": float(np.sqrt(np.mean(d**2))), "max": float(d.max()), "mean": float(d.mean())}
+        by_group = self.group_distances(residual, groups) if groups else {}
+        if by_group and "surface" in out:
+            out["surface"]["groups"] = by_group
         return out
+
+    def group_distances(self, residual: np.ndarray, groups: list[str]) -> dict[str, float]:
+        """Each matched group's rms distance to its own target surface (``groups``: the
+        scene's matched groups, in order), where the targets give one surface per group."""
+        squares, counts = dict.fromkeys(groups, 0.0), dict.fromkeys(groups, 0)
+        for rows, term in zip(self.slices, self.terms):
+            if isinstance(term, SurfaceTerm) and len(term.surfaces) == len(groups) > 1:
+                d2 = np.sum(residual[rows] ** 2, axis=1)
+                for i, group in enumerate(groups):
+                    mine = term.surface_of == i
+                    squares[group] += float(d2[mine].sum())
+                    counts[group] += int(mine.sum())
+        return {g: float(np.sqrt(squares[g] / counts[g])) for g in groups if counts[g]}
 
 
 # --------------------------------------------------------------------------- from [target]

@@ -196,4 +196,4 @@ class InverseProblem:
         return self.states.stack_controls(self.observation.rows(response_block(self.forward, theta, basis, rtol)))
 
     def distances(self, residual: np.ndarray) -> dict:
-        return self.misfit.distances(residual)
+        return self.misfit.distances(residual, self.scene.matched)

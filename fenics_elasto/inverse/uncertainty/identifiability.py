@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from fenics_elasto.inverse.checks import stray_group
 from fenics_elasto.inverse.uncertainty.answer import AnswerUncertainty
 from fenics_elasto.inverse.uncertainty.profile_interval import threshold
 from fenics_elasto.util.errors import UserError
@@ -67,11 +68,15 @@ def check_identifiable(answer: AnswerUncertainty, scanned: list[float], scan: in
     if not undetermined:
         return
     why = "; ".join(f"{label}: {reason}" for label, reason in undetermined.items())
+    problem = answer.problem
+    stray = stray_group(problem.misfit, answer.profile.best().evaluation.residual, problem.scene.matched, always=True)
+    why += f"; {stray}" if stray else ""
     remedy = ("state target.noise for the surfaces if they are known better: the landmarks' stated noise set the "
               f"interval's scale ({post.noise_std:.3g}, where the residual shows {post.residual_std:.3g}), " if
               post.noise_source == "the landmarks' stated noise" else "")
-    message = (f"{answer.problem.scene.path}: the data do not determine {', '.join(undetermined)} (at the best "
-               f"value solved, {why}); {remedy or 'fix it, '}or add data that see it (reduced bases, landmarks inside "
+    more = "better reduced bases (more examples, a higher rank)" if answer.surrogate is not None else "reduced bases"
+    message = (f"{problem.scene.path}: the data do not determine {', '.join(undetermined)} (at the best "
+               f"value solved, {why}); {remedy or 'fix it, '}or add data that see it ({more}, landmarks inside "
                f"the body, more matched surfaces), or set optimizer.allow_undetermined = true")
     if not allow:
         raise UserError(message)
