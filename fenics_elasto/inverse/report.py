@@ -179,6 +179,10 @@ def _minimum_with(estimator: Estimator, columns: np.ndarray, theta, std_s=None) 
 def run_warnings(estimator: Estimator, theta, interrupted: bool, fit=None, post=None) -> list[str]:
     out = []
     profile = estimator.profile
+    if interrupted:  # result.json's "interrupted" says it too, but a reader of the warnings alone would not know
+        out.append(f"interrupted before the estimate ended: the answer is the best of the {len(profile.solved)} "
+                   "material values solved so far, not the optimum" + ("; reduced bases (`fenics-elasto train`) make "
+                   "each one a few Gauss-Newton steps" if profile.basis is None else ""))
     if profile.unconverged:
         out.append(f"the inner solver stopped at its iteration limit ({estimator.options.inner_maxiter}) at "
                    f"{profile.unconverged} of {sum(stage != 'ci' for *_, stage in profile.solved)} material "
@@ -312,7 +316,10 @@ def record(estimator: Estimator, theta, best: InnerResult, phi_undeformed, warni
                       "prior": best.prior},
         "surface_distance": next(iter(problem.distances(best.evaluation.residual).values())),  # the first kind of data
         "distances": problem.distances(best.evaluation.residual),
-        "iterations": {"outer": estimator.outer_iterations, "inner": profile.inner_iterations,
+        # interrupted, the outer loop never returned its count: its solves so far
+        "iterations": {"outer": sum(kind == "outer" for *_, kind in profile.solved) if interrupted
+                       else estimator.outer_iterations,
+                       "inner": profile.inner_iterations,
                        "evaluations": len(profile.every_solve),
                        "surrogate_evaluations": estimator.surrogate.evaluations if estimator.surrogate else 0},
         "factorizations": problem.model.factorizations,

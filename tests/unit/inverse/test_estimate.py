@@ -135,6 +135,8 @@ def test_ctrl_c_writes_the_best_result_so_far(scenes, tmp_path):
     assert result["interrupted"] is True
     assert result["materials"]["prostate"]["E"] > 0 and len(result["history"]) >= 1
     assert "Traceback" not in stderr
+    # said among the warnings too, which a reader of them alone would otherwise miss
+    assert any(w.startswith("interrupted before the estimate ended") for w in result["warnings"]), result["warnings"]
 
 
 # --------------------------------------------------------------------------- bad input
