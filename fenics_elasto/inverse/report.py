@@ -49,8 +49,11 @@ def describe_offset(post: Posterior) -> list[str]:
 def offset_lines(delta: float, shifts) -> list[str]:
     """The line of ``describe_offset`` from the offset ``delta`` and (label, shift in s,
     is E) per constant (result.json's target_offset holds the shifts in units)."""
-    # first order: past a factor e either way a percentage reads as nonsense (-1e+02 %)
-    moved = [(f"{label} by {100 * np.expm1(d):+.2g} %" if abs(d) <= 1 else f"{label} by a factor {np.exp(d):.2g}")
+    # first order: past a factor e either way a percentage reads as nonsense (-1e+02 %), and
+    # a factor as much (a user's "by a factor 0.0018", once 3.5e-15): the offset that moves
+    # it 10 % instead (theirs made 35 um bigger, a tenth of that offset, moved E -80 %)
+    moved = [(f"{label} by {100 * np.expm1(d):+.2g} %" if abs(d) <= 1 else
+              f"{label} beyond first order ({np.log(1.1) * delta / abs(d):.2g} bigger would move it 10 %)")
              if is_E else f"{label} by {d:+.2g}" for label, d, is_E in shifts if np.isfinite(d)]
     if not moved:
         return []
@@ -195,7 +198,7 @@ def run_warnings(estimator: Estimator, theta, interrupted: bool, fit=None, post=
                    "matching finds; train with more or other examples (e.g. --synthetic)")
     out += _prior_warnings(estimator, post)
     out += (_bias_warnings(estimator.params, fit, post) + _rank_warnings(estimator.params, fit, post)
-            + _matched_motion_warnings(estimator.params, fit, post) + _open_interval_warnings(estimator.params, post))
+            + _matched_motion_warnings(estimator.params, fit, post) + _open_interval_warnings(estimator.params, post, theta))
     return out
 
 
@@ -221,18 +224,26 @@ def _prior_warnings(estimator: Estimator, post) -> list[str]:
     return out
 
 
-def _open_interval_warnings(params, post) -> list[str]:
+def _open_interval_warnings(params, post, theta) -> list[str]:
     """A 95 % interval that reaches past a bound: the data bound the constant on one side
-    only (the label-map chain pushed 1.5 mm: 294 in 45-1578 for bounds 2-500)."""
+    only (the label-map chain pushed 1.5 mm: 294 in 45-1578 for bounds 2-500), or, where
+    the value sits at that bound, the bound holds it and not the data (a user's bounds
+    0.5-20 for a truth of 40 that the data pin at 38-45: 13.3-30.0 was read as 'at least
+    13.3, weakly determined', and the other constant moved 13 % with it)."""
     if post is None:
         return []
     out = []
-    for label, (low, high), (lo, hi) in zip(params.labels, post.interval(), params.bounds):
+    for label, value, (low, high), (lo, hi) in zip(params.labels, theta, post.interval(), params.bounds):
         above, below = high > hi * (1 + 1e-9), low < lo * (1 - 1e-9)
         side = "upper" if above else "lower" if below else None
         if above and below:  # a user's swapped targets: the core at its lower bound, 0.96-708 for 2-500
             out.append(f"{label}: its 95 % interval ({low:.4g}-{high:.4g}) reaches past both its bounds ({lo:g}-{hi:g}): "
                        "the data do not bound it; is the target right (its files, groups and frame)?")
+        elif side and np.isclose(value, hi if above else lo, rtol=1e-3):
+            others = "; the other constants are fitted with it held there" if len(params.labels) > 1 else ""
+            out.append(f"{label}: its 95 % interval ({low:.4g}-{high:.4g}) reaches past its {side} bound, where the "
+                       f"value sits: the bound holds it, not the data, and the interval is not the answer's -- widen "
+                       f"the bounds{others}")
         elif side:
             bound, other = (hi, f"at least {low:.4g}") if side == "upper" else (lo, f"at most {high:.4g}")
             out.append(f"{label}: its 95 % interval ({low:.4g}-{high:.4g}) reaches past its {side} bound {bound:g}: "

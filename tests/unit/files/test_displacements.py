@@ -135,9 +135,12 @@ def test_landmarks_are_judged_by_their_own_noise():
     assert "above 3 x target.landmark_noise (3 x 0.002)" in warning
 
 
-def test_a_first_order_shift_past_a_factor_e_is_a_factor():
-    """'would move core.E by -1e+02 %' said nothing: a shift of E past a factor e reads as one."""
+def test_a_first_order_shift_past_a_factor_e_gives_the_offset_that_moves_it_10_percent():
+    """'would move core.E by -1e+02 %' said nothing, and 'by a factor 0.0018' no more (a
+    user's inclusions made a tenth of that offset bigger moved E -80 %): past a factor e
+    the line gives the offset that moves it 10 %, first order (0.001 x ln 1.1 / 8)."""
     from fenics_elasto.inverse.report import offset_lines
 
     (line,) = offset_lines(0.001, [("core.E", -8.0, True), ("rubber.E", 0.5, True), ("rubber.nu", 0.01, False)])
-    assert "core.E by a factor 0.00034" in line and "rubber.E by +65 %" in line and "rubber.nu by +0.01" in line
+    assert "core.E beyond first order (1.2e-05 bigger would move it 10 %)" in line, line
+    assert "rubber.E by +65 %" in line and "rubber.nu by +0.01" in line

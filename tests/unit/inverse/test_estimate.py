@@ -276,15 +276,21 @@ def test_an_interval_past_a_bound_is_said():
     from fenics_elasto.inverse.report import _open_interval_warnings
 
     params = SimpleNamespace(labels=["tumour.E", "tissue.nu"], bounds=[(2.0, 500.0), (0.1, 0.49)])
+    theta = [294.0, 0.32]
     post = SimpleNamespace(interval=lambda: np.array([[45.28, 1578.4], [0.3, 0.35]]))
-    (line,) = _open_interval_warnings(params, post)
+    (line,) = _open_interval_warnings(params, post, theta)
     assert line.startswith("tumour.E: its 95 % interval (45.28-1578) reaches past its upper bound 500")
     assert "at least 45.28" in line
     post = SimpleNamespace(interval=lambda: np.array([[1.2, 60.0], [0.05, 0.35]]))
-    assert [w.split(":")[0] for w in _open_interval_warnings(params, post)] == ["tumour.E", "tissue.nu"]
+    assert [w.split(":")[0] for w in _open_interval_warnings(params, post, theta)] == ["tumour.E", "tissue.nu"]
     post = SimpleNamespace(interval=lambda: np.array([[0.9565, 707.7], [0.3, 0.35]]))  # a user's swapped targets
-    (line,) = _open_interval_warnings(params, post)  # said "past its upper bound" only, the value at the lower
+    (line,) = _open_interval_warnings(params, post, theta)  # said "past its upper bound" only, the value at the lower
     assert "reaches past both its bounds (2-500): the data do not bound it" in line
+    # the value at the bound the interval reaches past: the bound holds it (a user's 0.5-20 for a truth of 40)
+    post = SimpleNamespace(interval=lambda: np.array([[13.32, 600.0], [0.3, 0.35]]))
+    (line,) = _open_interval_warnings(params, post, [500.0, 0.32])
+    assert "reaches past its upper bound, where the value sits: the bound holds it, not the data" in line
+    assert "at least" not in line and "other constants are fitted with it held there" in line
 
 
 def test_an_end_face_moved_in_its_own_plane_is_covered():
