@@ -238,7 +238,8 @@ def _open_interval_warnings(params, post, theta) -> list[str]:
         side = "upper" if above else "lower" if below else None
         if above and below:  # a user's swapped targets: the core at its lower bound, 0.96-708 for 2-500
             out.append(f"{label}: its 95 % interval ({low:.4g}-{high:.4g}) reaches past both its bounds ({lo:g}-{hi:g}): "
-                       "the data do not bound it; is the target right (its files, groups and frame)?")
+                       "the data do not bound it; is the target right (its files, groups and frame), or its noise "
+                       "larger than this constant's signal (bases_fit.signal_rms)?")
         elif side and np.isclose(value, hi if above else lo, rtol=1e-3):
             others = "; the other constants are fitted with it held there" if len(params.labels) > 1 else ""
             out.append(f"{label}: its 95 % interval ({low:.4g}-{high:.4g}) reaches past its {side} bound, where the "
