@@ -137,3 +137,17 @@ def test_a_degree_3_solve_that_moves_the_points_more_than_they_moved_is_said():
     assert "does not resolve the recovered boundary forces" in line
     assert unresolved_warnings(SimpleNamespace(mesh_moves=(0.000458, 0.37))) == []
     assert unresolved_warnings(SimpleNamespace(mesh_moves=None)) == [] and unresolved_warnings(None) == []
+
+
+def test_a_point_whose_degree_3_value_cannot_be_read_is_left_out():
+    """One observed point of a user's label-map scene read 9.35e4 mm in the degree-3 space
+    for 5 mm of motion (its curved cell's map not inverted there), and the mesh part made
+    intervals of 1e-21 to 1e23. The interpolated field read back at its own values marks
+    such a point: it is left out, the others kept as they are."""
+    from fenics_elasto.inverse.uncertainty.mesh_error import readable_difference
+
+    exact = np.array([[1.0, 0.0, 0.0], [0.0, 5.0, 0.0], [0.0, 0.0, 2.0]])
+    coarse = exact + np.array([[1e-12, 0, 0], [0, 0, 0], [0, 9.35e4, 0]])  # the third cannot be read
+    finer = coarse + np.array([[0.01, 0, 0], [0, -0.02, 0], [0, 7.0e3, 0]])
+    difference, lost = readable_difference(exact, coarse, finer)
+    assert lost == 1 and np.allclose(difference, [[0.01, 0, 0], [0, -0.02, 0], [0, 0, 0]])
