@@ -260,9 +260,11 @@ SLIVER_SHARE = 1e-4
 # Where a plane crosses the surface and passes that close to a corner by chance (a label
 # map's smoothed staircase: 1 voxel grid in 10 of a user's), it is moved along its normal
 # by steps of this share of that triangle's longest edge, up to NUDGE_STEPS of them, to
-# where it clears every corner by a step; never where the surface it nears lies along the
-# plane (within NUDGE_PARALLEL of its normal: a face the user meant to cut at).
-NUDGE_SHARE, NUDGE_STEPS, NUDGE_PARALLEL = 0.01, 10, 0.95
+# where it clears every corner by NUDGE_CLEAR of an edge (ten times what is refused; a
+# clearance of a whole step was not found within ten steps on a body of 36k triangles);
+# never where the surface it nears lies along the plane (within NUDGE_PARALLEL of its
+# normal: a face the user meant to cut at).
+NUDGE_SHARE, NUDGE_STEPS, NUDGE_CLEAR, NUDGE_PARALLEL = 0.01, 10, 10 * SLIVER_SHARE, 0.95
 
 
 def _closest_corner(body: Shell, point: np.ndarray, normal: np.ndarray) -> tuple[float, float, float, int]:
@@ -293,7 +295,7 @@ def _clear_of_slivers(body: Shell, patch: Patch, where: str, units: str) -> Patc
     require(not _along_the_plane(body, row, normal), refusal)
     for step in (k * sign for k in range(1, NUDGE_STEPS + 1) for sign in (1, -1)):
         moved = patch.point + step * NUDGE_SHARE * longest * normal
-        if _closest_corner(body, moved, normal)[0] >= NUDGE_SHARE:
+        if _closest_corner(body, moved, normal)[0] >= NUDGE_CLEAR:
             log.info(f"note: {where}: its plane passed {gap:.3g} {units} from a surface point it cuts past (edges of "
                      f"{longest:.3g}), too close to mesh; moved {step * NUDGE_SHARE * longest:+.3g} {units} along its "
                      "normal, clear of every point")
