@@ -144,3 +144,14 @@ def _non_integer(data: np.ndarray) -> str:
     finite = data[np.isfinite(data)]
     odd = finite[finite != np.round(finite)]
     return f"{odd.flat[0]:g}" if odd.size else "NaN"
+
+
+def check_off_border(labelled: np.ndarray, label: str) -> None:
+    """One line where labelled voxels (non-zero) lie on the image's border: the
+    segmentation was cut off there (a rest map for ``scene``, a deformed one for a target:
+    a user's map cropped through the body was refused as 'the data do not determine')."""
+    for axis, name in enumerate("ijk"):
+        for end in (0, labelled.shape[axis] - 1):
+            face = np.take(labelled, end, axis=axis)
+            require(not face.any(), f"{label}: labelled voxels on the image border ({name} = {end}): the "
+                    "segmentation is cut off there; pad the image or crop less")

@@ -29,7 +29,7 @@ from fenics_elasto.util.errors import UserError, require
 from fenics_elasto.util.logs import log
 from fenics_elasto.geometry.phong import finer_where_faceted
 from fenics_elasto.geometry.surface import Surface
-from fenics_elasto.files.images import read_label_image
+from fenics_elasto.files.images import check_off_border, read_label_image
 from fenics_elasto.inverse.displacement_field import DisplacementField
 from fenics_elasto.model.observation import Samples
 from fenics_elasto.files.readers import read_landmarks, read_surface
@@ -294,6 +294,8 @@ def label_map_targets(scene, table: dict, where: str) -> dict[str, Surface]:
     check_surface_groups(scene.matched, groups, where, noun="labels")
     image = read_label_image(scene.path.parent / table["image"], f"{where} image")
     present = set(np.unique(image.labels).tolist())
+    named = sorted({v for labels in groups.values() for v in labels})
+    check_off_border(np.isin(image.labels, named), f"{where} image ({table['image']})")
     out = {}
     for group, labels in groups.items():
         absent = sorted(set(labels) - present)

@@ -32,6 +32,7 @@ import numpy as np
 
 from fenics_elasto.files.images import LabelImage, read_label_image
 from fenics_elasto.geometry.label_surfaces import Interfaces, coarsened, smoothed, surface_nets
+from fenics_elasto.files.images import check_off_border
 from fenics_elasto.mesh.repair import NotClosed, Shell, enclosed_volume, shells_of, solid_shells
 from fenics_elasto.util.errors import require
 from fenics_elasto.util.logs import log
@@ -123,15 +124,6 @@ def _within(k: int, inside: dict[int, int]) -> list[int]:
     return [k] + [d for c in held for d in _within(c, inside)]
 
 
-def _check_border(compact: np.ndarray, label: str) -> None:
-    """The body (or a part) on the image's border: the segmentation was cut off there."""
-    for axis, name in enumerate("ijk"):
-        for end in (0, compact.shape[axis] - 1):
-            face = np.take(compact, end, axis=axis)
-            require(not face.any(), f"{label}: labelled voxels on the image border ({name} = {end}): the "
-                    "segmentation is cut off there; pad the image or crop less")
-
-
 def _shells(interfaces: Interfaces, inside: list[int], label: str, role: str, name: str) -> list[Shell]:
     points, triangles = interfaces.boundary_of(inside)
     points = smoothed(points, triangles)
@@ -151,7 +143,7 @@ def label_shells(spec: dict, folder: Path) -> tuple[Shell | None, list[Shell], n
     _check_present(image, spec, parts, label)
     compact = compact_labels(image, spec, parts)
     has_body = spec["body"]["label"] is not None
-    _check_border(compact, label)
+    check_off_border(compact, label)
     interfaces = surface_nets(compact, image.affine)
     inside = _check_nesting(interfaces.sides, parts, has_body, label)
     spacing = " x ".join(f"{s:.3g}" for s in image.spacing)

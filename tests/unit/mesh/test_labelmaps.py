@@ -303,3 +303,9 @@ def test_target_from_a_label_map_of_the_deformed_state(kidney):
                                                  "'tumor_surface' (did you mean 'tumour_surface'?)")):
         with pytest.raises(UserError, match=re.escape(words)):
             read_target(load_scene(kidney, [("target", {"labels": {"image": "deformed.nii.gz", **labels}})]))
+    # a deformed map cropped through the tumour: refused as `scene` refuses a rest map cut off (a user's
+    # cropped target was refused as 'the data do not determine nodule.E', the target never named)
+    cropped = lm.label_map(scale=1.1)[:, :, : lm.SHAPE[2] // 2 + 1]
+    lm.write_nifti(kidney.parent / "cropped.nii.gz", cropped)
+    with pytest.raises(UserError, match=r"\[target\]\.labels image \(cropped.nii.gz\): labelled voxels on the image border"):
+        read_target(load_scene(kidney, [("target", {"labels": {**target["labels"], "image": "cropped.nii.gz"}})]))
