@@ -38,3 +38,19 @@ def test_untangle_straightens_until_no_cell_folds(monkeypatch):
     for row in cells:
         for a, b, m in gmsh_models.TET10_EDGES:
             assert np.allclose(positions[row[m]], (positions[row[a]] + positions[row[b]]) / 2)
+
+
+def test_a_mesh_of_its_own_it_cannot_use_names_the_sizes(monkeypatch, tmp_path):
+    """The mesh check's advice for a folded cell names gmsh's options, which a user of
+    `scene` does not have: a mesh the toolkit made is refused with the sizes as the lever."""
+    import pytest
+
+    from fenics_elasto.util.errors import UserError
+
+    def refuse(_gmsh, label, _tdim):
+        raise UserError(f"{label}: 1 curved cell(s) fold over; untangle them (gmsh: Mesh.HighOrderOptimize = 1)")
+
+    monkeypatch.setattr(gmsh_models, "check_mesh", refuse)
+    gmsh = SimpleNamespace(model=SimpleNamespace(getPhysicalGroups=lambda: [(3, 1)]))
+    with pytest.raises(UserError, match=r"scene.msh as meshed: 1 curved cell.* a slightly different size or organ_size"):
+        gmsh_models.save(gmsh, tmp_path / "scene.msh")
