@@ -267,7 +267,9 @@ def target_warnings(problem: InverseProblem, best: InnerResult, state_noise: str
 
 
 # One matched group fitting its target this many times worse than every other group does:
-# its target (a stale file, another state's scan, a frame slip) is the first suspect.
+# its target (a stale file, another state's scan, a frame slip) is the first suspect, the
+# set-up beside it the second (a user's exact outer surface fitted 11x worse than the
+# organs' where their patch planes clamped a strip of wall the truth had left free).
 STRAY_GROUP = 10.0
 
 
@@ -282,7 +284,8 @@ def stray_group(misfit, residual: np.ndarray, groups: list[str], always: bool = 
     worst, others = order[0], fits[order[1]]
     if fits[worst] > STRAY_GROUP * others:
         return (f"{worst} fits its target {fits[worst] / max(others, 1e-300):.3g}x worse than every other group (rms "
-                f"{fits[worst]:.3g}, the others within {others:.3g}): check its target (its file, its state, its frame)")
+                f"{fits[worst]:.3g}, the others within {others:.3g}): check its target (its file, its state, its frame) "
+                "and the set-up beside it (what is clamped or loaded there that the body did not have)")
     if not always:
         return None
     return "rms distance per group, the worst first: " + ", ".join(f"{g} {fits[g]:.3g}" for g in order)
