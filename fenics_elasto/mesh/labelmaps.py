@@ -30,9 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
-from fenics_elasto.files.images import LabelImage, read_label_image
+from fenics_elasto.files.images import LabelImage, check_off_border, read_label_image
 from fenics_elasto.geometry.label_surfaces import Interfaces, coarsened, smoothed, surface_nets
-from fenics_elasto.files.images import check_off_border
 from fenics_elasto.mesh.repair import NotClosed, Shell, enclosed_volume, shells_of, solid_shells
 from fenics_elasto.util.errors import require
 from fenics_elasto.util.logs import log
