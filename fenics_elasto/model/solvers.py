@@ -655,7 +655,7 @@ class IterativeSolver(LinearSolver):
         """Stop each solve once its residual is ``rtol`` of its start's, not of ||b||: for
         solves started from a close guess, whose correction is then found to ``rtol``
         whatever share of b it is (the start's own rtol would be that share times it)."""
-        self.ksp.setConvergenceTest(_FromStart(rtol, MAX_ITERATIONS))
+        self.ksp.setConvergenceTest(_FromStart(rtol))
 
 
 class TwoLevelSolver(IterativeSolver):
@@ -682,10 +682,11 @@ class TwoLevelSolver(IterativeSolver):
 
 
 class _FromStart:
-    """A KSP convergence test: converged once the residual is ``rtol`` of the first one."""
+    """A KSP convergence test: converged once the residual is ``rtol`` of the first one
+    (the KSP's own max_it still ends a solve that never gets there: DIVERGED_ITS)."""
 
-    def __init__(self, rtol: float, max_it: int):
-        self.rtol, self.max_it, self.first = rtol, max_it, 0.0
+    def __init__(self, rtol: float):
+        self.rtol, self.first = rtol, 0.0
 
     def __call__(self, ksp: PETSc.KSP, its: int, rnorm: float) -> int:
         reason = PETSc.KSP.ConvergedReason
@@ -695,7 +696,7 @@ class _FromStart:
             return reason.DIVERGED_NANORINF
         if rnorm <= self.rtol * self.first:
             return reason.CONVERGED_RTOL if its else reason.CONVERGED_ATOL
-        return reason.DIVERGED_ITS if its >= self.max_it else reason.ITERATING
+        return reason.ITERATING
 
 
 class _TwoLevel:
