@@ -191,7 +191,7 @@ def run_warnings(estimator: Estimator, theta, interrupted: bool, fit=None, post=
                    f"{profile.unconverged} of {sum(stage != 'ci' for *_, stage in profile.solved)} material "
                    "values: raise optimizer.inner_maxiter" + (NO_BASES_REMEDY if profile.basis is None else ""))
     for label, value, (lo, hi) in zip(estimator.params.labels, theta, estimator.params.bounds):
-        if np.isclose(value, lo, rtol=1e-3) or np.isclose(value, hi, rtol=1e-3):
+        if _at(value, lo) or _at(value, hi):
             out.append(f"{label} = {value:.4g} is at its bound [{lo:g}, {hi:g}]: widen the bounds or check the set-up")
     if fit is not None and fit["wall_motion_explained"] < 0.9:
         out.append(f"the bases explain {100 * fit['wall_motion_explained']:.0f} % of the wall motion surface "
@@ -224,6 +224,11 @@ def _prior_warnings(estimator: Estimator, post) -> list[str]:
     return out
 
 
+def _at(value: float, bound: float) -> bool:
+    """Whether an answer sits at a bound (the optimizer stops within a hair of it)."""
+    return bool(np.isclose(value, bound, rtol=1e-3))
+
+
 def _open_interval_warnings(params, post, theta) -> list[str]:
     """A 95 % interval that reaches past a bound: the data bound the constant on one side
     only (the label-map chain pushed 1.5 mm: 294 in 45-1578 for bounds 2-500), or, where
@@ -240,7 +245,7 @@ def _open_interval_warnings(params, post, theta) -> list[str]:
             out.append(f"{label}: its 95 % interval ({low:.4g}-{high:.4g}) reaches past both its bounds ({lo:g}-{hi:g}): "
                        "the data do not bound it; is the target right (its files, groups and frame), or its noise "
                        "larger than this constant's signal (bases_fit.signal_rms)?")
-        elif side and np.isclose(value, hi if above else lo, rtol=1e-3):
+        elif side and _at(value, hi if above else lo):
             others = "; the other constants are fitted with it held there" if len(params.labels) > 1 else ""
             out.append(f"{label}: its 95 % interval ({low:.4g}-{high:.4g}) reaches past its {side} bound, where the "
                        f"value sits: the bound holds it, not the data, and the interval is not the answer's -- widen "
@@ -321,13 +326,14 @@ def record(estimator: Estimator, theta, best: InnerResult, phi_undeformed, warni
     problem, profile = estimator.problem, estimator.profile
     E, nu = problem.params.materials(theta)
     initial = profile.every_solve[0][1].value if profile.every_solve else None
+    distances = problem.distances(best.evaluation.residual)
     return {
         "materials": {m.name: {"E": float(E[i]), "nu": float(nu[i])} for i, m in enumerate(problem.scene.materials)},
         "estimated": list(problem.params.labels),
         "objective": {"undeformed": phi_undeformed, "initial": initial, "final": best.evaluation.phi,
                       "prior": best.prior},
-        "surface_distance": next(iter(problem.distances(best.evaluation.residual).values())),  # the first kind of data
-        "distances": problem.distances(best.evaluation.residual),
+        "surface_distance": next(iter(distances.values())),  # the first kind of data
+        "distances": distances,
         # interrupted, the outer loop never returned its count: its solves so far
         "iterations": {"outer": sum(kind == "outer" for *_, kind in profile.solved) if interrupted
                        else estimator.outer_iterations,
