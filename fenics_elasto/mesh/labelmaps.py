@@ -32,7 +32,7 @@ import numpy as np
 
 from fenics_elasto.files.images import LabelImage, check_off_border, read_label_image
 from fenics_elasto.geometry.label_surfaces import Interfaces, coarsened, smoothed, surface_nets
-from fenics_elasto.mesh.repair import NotClosed, Shell, enclosed_volume, shells_of, solid_shells
+from fenics_elasto.mesh.repair import NotClosed, Shell, enclosed_volume, featured, shells_of, solid_shells
 from fenics_elasto.util.errors import require
 from fenics_elasto.util.logs import log
 
@@ -189,7 +189,7 @@ def _coarsened_shell(shell: Shell, organ_size: float, beyond: float) -> Shell:
             continue
         require(len(pieces) == 1, f"{shell.label}: split into {len(pieces)} pieces when coarsened; try a smaller organ_size")
         _say_what_changed(shell, pieces[0])
-        return pieces[0]
+        return featured(pieces[0]) if len(shell.features) else pieces[0]  # a box's edges stay edges
     if failed:
         log.info(f"{shell.label}: kept its {len(shell.triangles)} triangles")
     return shell

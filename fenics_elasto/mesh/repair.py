@@ -12,6 +12,7 @@ line -- in this order:
 3. orient every component consistently (libigl's BFS), fill each hole whose radius is
    at most 5 % of the surface's size with a fan from the hole's centre, and turn each
    component's normals outward (positive enclosed volume);
+4. keep the sharp edges that part faces (a box's edges) as edges of the mesh;
 and what it cannot make a closed surface in place -- an edge shared by more than two
 triangles, a larger opening, a surface that touches or passes through itself (found
 from the winding number just inside and outside of every triangle: 1 and 0 on a simple
@@ -38,6 +39,7 @@ from fenics_elasto.util.logs import log
 
 MERGE_TOLERANCE = 1e-7  # of the bounding-box diagonal
 SPECK_FRACTION = 0.01  # components under 1 % of the largest one's area are specks
+FACE_SHARE = 0.01  # sharp edges are kept where they part faces of at least 1 % of the area
 HOLE_FRACTION = 0.05  # holes up to 5 % of the bounding-box diagonal (radius) are filled
 
 
@@ -293,7 +295,17 @@ def closed_shells(path: Path, label: str, role: str, name: str) -> list[Shell]:
     """The file's closed components, repaired or rebuilt (see the module docstring),
     outward; a voxel staircase smoothed as a label map's surfaces are."""
     points, triangles = read_triangles(path, label)
-    return [_unstepped(shell) for shell in solid_shells(points, triangles, label, role, name)]
+    shells = [featured(_unstepped(shell)) for shell in solid_shells(points, triangles, label, role, name)]
+    for shell in shells:
+        if len(shell.features):
+            log.info(f"{label}: its sharp edges ({len(shell.features)} triangle edges) are kept as edges of the mesh")
+    return shells
+
+
+def featured(shell: Shell) -> Shell:
+    """The shell with its sharp edges as features (feature_edges)."""
+    return Shell(shell.role, shell.name, shell.label, shell.points, shell.triangles,
+                 feature_edges(shell.points, shell.triangles))
 
 
 def _unstepped(shell: Shell) -> Shell:
@@ -406,6 +418,32 @@ def sharp_edges(points: np.ndarray, triangles: np.ndarray, degrees: float = 45.0
     return np.asarray(igl.sharp_edges(points, triangles, np.radians(degrees)), dtype=np.int64).reshape(-1, 2)
 
 
+def feature_edges(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """The sharp edges that part faces of at least FACE_SHARE of the surface's area: a
+    box's or a machined part's edges, kept as curves so that the mesh keeps its corners
+    (smoothed over, a box's edges were cut off 2 mm deep by 8 mm elements). A noisy
+    segmentation's stray sharp edges part no such faces and stay smooth. The surface is
+    closed (every edge between two triangles)."""
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+
+    edges, which, _ = edge_use(triangles)
+    pair = np.repeat(np.arange(len(triangles)), 3)[np.argsort(which, kind="stable")].reshape(-1, 2)
+    keys = row_keys(np.vstack([edges, np.sort(sharp_edges(points, triangles), axis=1)]))  # one numbering for both
+    sharp = np.isin(keys[:len(edges)], keys[len(edges):])
+    area = triangle_areas(points, triangles)
+    while True:
+        smooth = pair[~sharp]
+        joined = sp.coo_matrix((np.ones(len(smooth)), (smooth[:, 0], smooth[:, 1])), shape=(len(triangles),) * 2)
+        face = connected_components(joined, directed=False)[1]
+        large = np.bincount(face, area) >= FACE_SHARE * area.sum()
+        a, b = face[pair[:, 0]], face[pair[:, 1]]
+        parting = sharp & (a != b) & large[a] & large[b]
+        if (parting == sharp).all():
+            return edges[sharp]
+        sharp = parting
+
+
 def cut_by_planes(shell: Shell, planes: list[tuple[np.ndarray, np.ndarray]]) -> Shell:
     """The shell cut along each plane (point, normal) through its triangles: every
     triangle lies on one side of every plane; ``patches`` gets bit p for the side
@@ -430,8 +468,8 @@ def cut_by_planes(shell: Shell, planes: list[tuple[np.ndarray, np.ndarray]]) -> 
     first[which[::-1]] = side[::-1]  # the bits of one of each edge's two triangles
     cut = edges[side != first[which]]
     cut = cut[np.unique(row_keys(cut), return_index=True)[1]]
-    # the only features before a cut are a box's sharp edges, now split where the planes cross them
-    sharp = sharp_edges(points, triangles) if len(shell.features) else np.empty((0, 2), np.int64)
+    # the only features before a cut are sharp edges (feature_edges), now split where the planes cross them
+    sharp = feature_edges(points, triangles) if len(shell.features) else np.empty((0, 2), np.int64)
     return Shell(shell.role, shell.name, shell.label, points, triangles, np.vstack([sharp, cut]), bits)
 
 

@@ -595,6 +595,57 @@ def test_scene_under_mpi(tmp_path):
 # --------------------------------------------------------------------------- the same phantom by both doors
 
 
+def test_a_box_from_a_surface_file_keeps_its_edges(tmp_path):
+    """A box given as an STL (a phantom's, a machined part's) was meshed as one smooth
+    surface: elements of 8 mm cut its edges off up to 2 mm deep, and the model's body was
+    not the user's. Its sharp edges are now the mesh's edges: every outer facet lies on
+    one face, and the areas and volume are the box's."""
+    box = pv.Box(bounds=(-20.0, 16.0, -15.0, 15.0, -12.0, 18.0), level=6, quads=False).clean()
+    spec = write(tmp_path, {"box.stl": box, "ball.stl": sphere((0, 0, 2), 6.0)}, """
+size = 8.0
+organ_size = 2.5
+[body]
+surface = "box.stl"
+[regions.ball]
+surface = "ball.stl"
+[patches.bottom]
+side = { point = [0.0, -13.0, 0.0], normal = [0.0, -1.0, 0.0] }
+""")
+    areas, volumes, scene = measures(build_scene_from_spec(spec, tmp_path / "out"))
+    a, b, c = 36.0, 30.0, 30.0
+    assert areas["outer"] == pytest.approx(2 * (a * b + b * c + c * a), rel=1e-9)
+    assert areas["bottom"] == pytest.approx(a * c + 2 * (a + c) * 2.0, rel=1e-9)  # face + 2-wide strips
+    assert volumes["tissue"] + volumes["ball"] == pytest.approx(a * b * c, rel=1e-9)
+    corners = facet_corners(scene, "outer")
+    faces = np.array([[-20.0, -15.0, -12.0], [16.0, 15.0, 18.0]])
+    on_face = np.isclose(corners[:, :, None, :], faces[None, None], atol=1e-9)  # (facet, corner, low/high, axis)
+    assert on_face.all(axis=1).any(axis=(1, 2)).all()  # every facet's three corners share a face
+
+
+def test_sharp_edges_are_kept_only_where_they_part_faces():
+    """A box's twelve edges are features, also once decimated (as a fine export or a
+    label map's surface is); a bumpy organ's stray sharp edges are not."""
+    from fenics_elasto.mesh.labelmaps import coarsen
+    from fenics_elasto.mesh.repair import feature_edges, featured, shells_of
+
+    length = lambda shell: np.linalg.norm(np.subtract(*shell.points[shell.features.T]), axis=1).sum()  # noqa: E731
+    box = pv.Box(bounds=(0.0, 30.0, 0.0, 20.0, 0.0, 10.0), level=20, quads=False).clean()
+    shell = featured(shells_of(np.asarray(box.points), box.faces.reshape(-1, 4)[:, 1:], "box", "body", "tissue")[0])
+    decimated = coarsen([shell], 6.0)[0]
+    assert len(decimated.triangles) < len(shell.triangles) / 3
+    for kept in (shell, decimated):
+        assert length(kept) == pytest.approx(4 * (30 + 20 + 10))
+    bumpy = sphere((0, 0, 0), 10.0, nsub=3)
+    rng = np.random.default_rng(0)
+    spikes = rng.choice(bumpy.n_points, 20, replace=False)
+    bumpy.points[spikes] *= 1.6  # twenty spikes: sharp edges around each, parting only specks
+    from fenics_elasto.mesh.repair import sharp_edges
+
+    triangles = bumpy.faces.reshape(-1, 4)[:, 1:]
+    assert len(sharp_edges(np.asarray(bumpy.points), triangles)) > 60
+    assert len(feature_edges(np.asarray(bumpy.points), triangles)) == 0
+
+
 def phantom_files(folder: Path) -> Path:
     """The built-in phantom's shapes (phantom_organs(0), its 12 x 10 x 10 cm box) written as
     surface files, and a spec that makes them a scene: prostate a region; bladder, rectum
