@@ -12,7 +12,9 @@ and 1 x 1 x 3 mm, the grid turned 0-17 degrees (``tests/unit/inverse/test_voxel_
 a point with unit normal n lies off by an rms of 0.07-0.11 x |n . h| (h: the voxel's
 three edges, |n . h| = sqrt(sum_a (n . h_a)^2)), hence VOXEL_SHARE; two points one
 largest edge apart share 0.3-0.7 of it, 1.5 edges apart 0.1-0.3, two edges ~0.1: a
-Gaussian of CORRELATION_SHARE x the largest edge.
+Gaussian of CORRELATION_SHARE x the largest edge. A face a few degrees off the grid
+steps far less often, and its terraces are longer than the smoothing reaches: there the
+error is larger and reaches further (``staircase``, measured on boxes).
 
 Both segmentations count, independently: the source's (a scene ``fenics-elasto scene``
 made from a label map writes ``[uncertainty] source_voxels``; the same error field in
@@ -32,15 +34,22 @@ from fenics_elasto.inverse.uncertainty.posterior import offset_matrix
 VOXEL_SHARE = 0.1
 CORRELATION_SHARE = 0.8
 REACH = 3.0  # correlation lengths beyond which two points are taken as independent (exp(-4.5) = 0.01)
-# Flat faces along the grid. The model above was measured on spheres, whose staircase steps
-# every voxel or two. A face within a few degrees of a voxel plane steps only every
-# h / tan(angle): a box's faces at 0.8 x 0.8 x 1.5 mm lay off by 0.48, 0.28, 0.19 and
-# 0.06 mm rms at 0, 5, 10 and 20 degrees, against the model's 0.08-0.15, over terraces
-# the smoothing cannot take out (tests/unit/inverse/test_voxel_error.py); a prostate MR
-# user's box-shaped body (4-11 degrees off its grid) put the gland's E 20-27 % high with
-# intervals that missed. A sphere has 5 % of its points within ALIGNED_DEGREES of the
-# grid's planes.
-ALIGNED_DEGREES = 12.0
+# Faces along the grid. The model above was measured on spheres, whose staircase steps
+# every voxel or two. A face at an angle t to a voxel plane steps only every
+# period = depth / tan t (depth: the voxel's extent across that plane), and the smoothing
+# takes out only short periods: a box's faces 2.5-5.6 degrees off a 0.8 x 0.8 x 1.5 mm
+# grid lay off by 2.2x what the spheres' model says, over terraces of 8-17 mm. So a point
+# lies off by the larger of the spheres' share and STEP_SHARE of the depth (a sawtooth:
+# 1 / sqrt(12)) times the share of its period the smoothing lets through,
+# 1 / (1 + (SMOOTHED_PERIOD x the in-plane edge / period)^4), correlated over a sixth of
+# the period (at least the spheres' length, at most TERRACE_CAP largest edges).
+# Measured on boxes at 3-20 degrees on three grids: 0.43-1.13 of this (test_voxel_error.py).
+# Along the grid (within ALIGNED_DEGREES) a face's whole offset is one unknown of up to half
+# a voxel, which no correlation length here spans: that is said (grid_aligned_warnings).
+STEP_SHARE = 0.3
+SMOOTHED_PERIOD = 9.0
+TERRACE_CAP = 5.0
+ALIGNED_DEGREES = 2.0
 ALIGNED_SHARE = 0.25
 
 
@@ -61,14 +70,43 @@ def normal_std(normals: np.ndarray, edges: np.ndarray) -> np.ndarray:
     return VOXEL_SHARE * np.linalg.norm(normals @ edges[:gdim, :gdim], axis=1)
 
 
-def correlated_sum(weights: np.ndarray, positions: np.ndarray, length: float) -> float:
-    """sum_ij w_i w_j exp(-|x_i - x_j|^2 / (2 length^2)), the pairs beyond REACH lengths
-    left out."""
-    total = float(np.sum(weights**2))
-    pairs = cKDTree(positions).query_pairs(REACH * length, output_type="ndarray")
+def staircase(normals: np.ndarray, edges: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per unit normal: the segmentation's rms error along it and its correlation length,
+    for voxels of these edges (the spheres' model, or a long terrace's; see above)."""
+    gdim = normals.shape[1]
+    edges = edges[:gdim, :gdim]
+    duals = np.linalg.inv(edges)  # rows: normals of the voxel planes, over their spacing
+    depth = 1.0 / np.linalg.norm(duals, axis=1)
+    cosine = np.abs(normals @ (duals * depth[:, None]).T)
+    plane = np.argmax(cosine, axis=1)
+    c = np.clip(cosine[np.arange(len(plane)), plane], 1e-12, 1.0)
+    period = depth[plane] * c / np.maximum(np.sqrt(1.0 - c**2), 1e-12)
+    lengths = np.linalg.norm(edges, axis=0)
+    in_plane = np.sqrt((np.sum(lengths**2) - lengths**2) / max(gdim - 1, 1))[plane]
+    passed = 1.0 / (1.0 + (SMOOTHED_PERIOD * in_plane / period) ** 4)
+    std = np.maximum(normal_std(normals, edges), STEP_SHARE * depth[plane] * passed)
+    return std, np.clip(period / 6.0, CORRELATION_SHARE * lengths.max(), TERRACE_CAP * lengths.max())
+
+
+def correlated_sum(weights: np.ndarray, positions: np.ndarray, length) -> float:
+    """sum_ij w_i w_j rho_ij, rho the Gaussian of each point's correlation ``length`` (one
+    for all, or one each: Gibbs' kernel, (2 l_i l_j / s)^(d/2) exp(-|x_i - x_j|^2 / s),
+    s = l_i^2 + l_j^2, in d dimensions: a covariance), the pairs beyond REACH of the
+    longest left out."""
+    return float(correlated_sums(weights[None], positions, length)[0])
+
+
+def correlated_sums(weights: np.ndarray, positions: np.ndarray, length) -> np.ndarray:
+    """``correlated_sum`` for each row of weights, the pairs found once."""
+    lengths = np.broadcast_to(np.asarray(length, float), weights.shape[1:])
+    total = np.sum(weights**2, axis=1)
+    pairs = cKDTree(positions).query_pairs(REACH * float(lengths.max(initial=0.0)), output_type="ndarray")
     if len(pairs):
-        d2 = np.sum((positions[pairs[:, 0]] - positions[pairs[:, 1]]) ** 2, axis=1)
-        total += 2.0 * float(np.sum(weights[pairs[:, 0]] * weights[pairs[:, 1]] * np.exp(-0.5 * d2 / length**2)))
+        i, j = pairs[:, 0], pairs[:, 1]
+        s = lengths[i] ** 2 + lengths[j] ** 2
+        rho = (2.0 * lengths[i] * lengths[j] / s) ** (positions.shape[1] / 2)
+        rho *= np.exp(-np.sum((positions[i] - positions[j]) ** 2, axis=1) / s)
+        total += 2.0 * (weights[:, i] * weights[:, j]) @ rho
     return total
 
 
@@ -102,19 +140,19 @@ def voxel_std(problem, lin, evaluation) -> np.ndarray | None:
     pull = offset_matrix(lin)[:, surface * gdim] * scale  # ds per unit of normal error at each surface row
     variance = np.zeros(pull.shape[0])
     if source is not None:  # one field, at the rest positions: a node's rows in every state move together
-        variance += _variance(pull, normal_std(normals, source), problem.points[surface], source)
+        variance += _variance(pull, normals, problem.points[surface], source)
     count = len(problem.observation.points)
     for state in range(problem.states.count):
         mine = [i for i, row in enumerate(surface) if row // count == state and targets[row] is not None]
         for edges in {id(targets[surface[i]]): targets[surface[i]] for i in mine}.values():
             same = [i for i in mine if targets[surface[i]] is edges]
-            variance += _variance(pull[:, same], normal_std(normals[same], edges), evaluation.y[surface[same]], edges)
+            variance += _variance(pull[:, same], normals[same], evaluation.y[surface[same]], edges)
     return np.sqrt(variance)
 
 
-def _variance(pull: np.ndarray, stds: np.ndarray, positions: np.ndarray, edges: np.ndarray) -> np.ndarray:
-    length = CORRELATION_SHARE * float(np.linalg.norm(edges, axis=0).max())
-    return np.array([correlated_sum(p * stds, positions, length) for p in pull])
+def _variance(pull: np.ndarray, normals: np.ndarray, positions: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    stds, lengths = staircase(normals, edges)
+    return correlated_sums(pull * stds, positions, lengths)
 
 
 def aligned_share(normals: np.ndarray, edges: np.ndarray) -> float:
@@ -153,7 +191,7 @@ def grid_aligned_warnings(problem, y: np.ndarray) -> list[str]:
 
 def _aligned_line(name: str, share: float, edges: np.ndarray) -> str:
     sizes = " x ".join(f"{v:.2g}" for v in np.linalg.norm(edges, axis=0))
-    return (f"{name}'s surfaces lie within {ALIGNED_DEGREES:g} degrees of its voxel grid ({sizes}) at {share:.0%} of the "
-            "matched points: flat faces along the grid keep a staircase that smoothing cannot take out (2x what the "
-            "voxels part of sigma counts at 5 degrees, 4x along the grid), so the answer may be off by more than its "
-            "interval -- a grid turned 15 degrees or more against those faces, or surface files, would hold it")
+    return (f"{name}'s surfaces lie along its voxel grid ({sizes}; within {ALIGNED_DEGREES:g} degrees) at {share:.0%} "
+            "of the matched points: such a face's place is known only to within a voxel, the same unknown over all of "
+            "it, which the voxels part of sigma does not count -- the answer may be off by more than its interval; a "
+            "grid turned a few degrees against those faces, or surface files, would hold it")

@@ -9,7 +9,8 @@ from scipy.spatial.transform import Rotation
 from fenics_elasto.config.problem import read_problem
 from fenics_elasto.geometry.label_surfaces import label_surface
 from fenics_elasto.inverse.uncertainty.voxels import (ALIGNED_SHARE, CORRELATION_SHARE, REACH, VOXEL_SHARE, aligned_share,
-                                                     correlated_sum, grid_aligned_warnings, normal_std, voxel_edges)
+                                                     correlated_sum, grid_aligned_warnings, normal_std, staircase,
+                                                     voxel_edges)
 from fenics_elasto.util.errors import UserError
 
 RADIUS = 11.0  # mm: a user's tumour
@@ -33,12 +34,13 @@ def voxelised_sphere(spacing, degrees: float):
 
 @pytest.mark.parametrize("spacing, degrees", [((0.8, 0.8, 2.0), 5.0), ((1.0, 1.0, 3.0), 17.0), ((0.5, 0.5, 1.0), 0.0)])
 def test_a_label_surface_is_off_by_the_share_the_model_says(spacing, degrees):
-    """rms error against VOXEL_SHARE |n . h| (measured 0.07-0.11 of it on 12 grids), and
-    the share two points one largest edge apart have in common against the Gaussian of
-    CORRELATION_SHARE that voxels.py assumes (measured 0.34-0.79)."""
+    """rms error against VOXEL_SHARE |n . h| (measured 0.07-0.11 of it on 12 grids) and
+    against the model with long terraces (0.66-0.75 of it), and the share two points one
+    largest edge apart have in common against the Gaussian of CORRELATION_SHARE that
+    voxels.py assumes (measured 0.34-0.79)."""
     points, error, normals, edges = voxelised_sphere(spacing, degrees)
-    model = normal_std(normals, edges)
-    assert 0.6 < np.sqrt(np.mean(error**2) / np.mean(model**2)) < 1.3
+    assert 0.6 < np.sqrt(np.mean(error**2) / np.mean(normal_std(normals, edges) ** 2)) < 1.3
+    assert 0.55 < np.sqrt(np.mean(error**2) / np.mean(staircase(normals, edges)[0] ** 2)) < 1.3
     h = max(spacing)
     pairs = cKDTree(points).query_pairs(1.1 * h, output_type="ndarray")
     apart = np.linalg.norm(points[pairs[:, 0]] - points[pairs[:, 1]], axis=1)
@@ -58,6 +60,11 @@ def test_correlated_sum_is_the_quadratic_form():
     dense = np.where(d <= REACH * length, np.exp(-0.5 * d**2 / length**2), 0.0)
     assert correlated_sum(w, x, length) == pytest.approx(w @ dense @ w, rel=1e-12)
     assert correlated_sum(w, x, 1e-6) == pytest.approx(w @ w)  # no reach: independent points
+    each = rng.uniform(0.5, 2.0, 400)  # a length per point: Gibbs' kernel
+    s = each[:, None] ** 2 + each[None] ** 2
+    kernel = (2 * np.outer(each, each) / s) ** 1.5 * np.exp(-d**2 / s)
+    assert correlated_sum(w, x, each) == pytest.approx(w @ np.where(d <= REACH * each.max(), kernel, 0.0) @ w, rel=1e-12)
+    assert np.linalg.eigvalsh(kernel).min() > -1e-9  # a covariance
 
 
 def test_voxel_edges_from_spacings_or_edges():
@@ -98,21 +105,25 @@ def voxelised_box(spacing, degrees: float):
     return points[rows], off[rows, face[rows]], normals, np.diag(spacing)
 
 
-@pytest.mark.parametrize("degrees, low, high", [(5.0, 1.6, 3.5), (30.0, 0.2, 1.0)])
-def test_flat_faces_along_the_grid_keep_a_longer_staircase(degrees, low, high):
-    """A box's faces 2.5-5.6 degrees off a 0.8 x 0.8 x 1.5 mm grid lie off by 2.2x what
-    the model (measured on spheres) says (4x along it); at 15-33 degrees within it. So
-    surfaces mostly along the grid are said (grid_aligned_warnings), spheres' are not."""
-    points, error, normals, edges = voxelised_box((0.8, 0.8, 1.5), degrees)
-    ratio = np.sqrt(np.mean(error**2) / np.mean(normal_std(normals, edges) ** 2))
-    assert low < ratio < high, ratio
-    assert aligned_share(normals, edges) == (1.0 if degrees < 10 else 0.0)
-    _, _, sphere_normals, sphere_edges = voxelised_sphere((0.8, 0.8, 1.5), 0.0)
-    assert 0.03 < aligned_share(sphere_normals, sphere_edges) < ALIGNED_SHARE / 2
+@pytest.mark.parametrize("spacing, degrees", [((0.8, 0.8, 1.5), 5.0), ((1.0, 1.0, 3.0), 12.0), ((0.5, 0.5, 1.0), 20.0)])
+def test_faces_near_the_grid_are_off_by_the_share_the_model_says(spacing, degrees):
+    """A box's faces a few degrees off the grid keep long terraces: 2.2x what the spheres'
+    model says at 2.5-5.6 degrees on 0.8 x 0.8 x 1.5 mm. The model with terraces (staircase)
+    is measured at 0.43-1.13 of the error on boxes at 3-20 degrees on three grids (0.43: at
+    20 degrees, where the spheres' model leads and is cautious for a flat face)."""
+    _, error, normals, edges = voxelised_box(spacing, degrees)
+    measured = np.sqrt(np.mean(error**2))
+    assert 0.4 < measured / np.sqrt(np.mean(staircase(normals, edges)[0] ** 2)) < 1.2
+    lengths = staircase(normals, edges)[1]
+    assert (lengths >= CORRELATION_SHARE * max(spacing) - 1e-12).all()
+    if degrees == 5.0:  # beyond the spheres' model, in size and in reach
+        assert measured / np.sqrt(np.mean(normal_std(normals, edges) ** 2)) > 1.8
+        assert lengths.max() > 2 * CORRELATION_SHARE * max(spacing)
 
 
 def test_a_label_map_mostly_along_its_grid_is_said():
-    """One line per label map whose matched surfaces lie along its grid; none for a sphere."""
+    """One line per label map whose matched surfaces lie along its grid (a face's offset:
+    one unknown over all of it); none a few degrees off it, nor for a sphere."""
     from types import SimpleNamespace
 
     from fenics_elasto.geometry.surface import Surface
@@ -129,10 +140,13 @@ def test_a_label_map_mostly_along_its_grid_is_said():
                                   states=SimpleNamespace(misfits=[target]))
         return grid_aligned_warnings(problem, np.zeros((n, 3)))
 
-    _, _, box, edges = voxelised_box((0.8, 0.8, 1.5), 5.0)
+    _, _, box, edges = voxelised_box((0.8, 0.8, 1.5), 0.0)
     lines = warned(box, edges, "source")
-    assert len(lines) == 1 and "the source's label map's surfaces lie within 12 degrees of its voxel grid" in lines[0]
-    assert "100%" in lines[0] and "0.8 x 0.8 x 1.5" in lines[0]
-    assert warned(box, edges, "target")[0].startswith("the target label map's surfaces lie within 12 degrees")
+    assert len(lines) == 1 and "the source's label map's surfaces lie along its voxel grid (0.8 x 0.8 x 1.5" in lines[0]
+    assert "100%" in lines[0]
+    assert warned(box, edges, "target")[0].startswith("the target label map's surfaces lie along its voxel grid")
+    _, _, turned, edges = voxelised_box((0.8, 0.8, 1.5), 5.0)  # counted in the voxels part
     _, _, sphere, edges = voxelised_sphere((0.8, 0.8, 1.5), 0.0)
-    assert warned(sphere, edges, "source") == warned(sphere, edges, "target") == warned(box, edges, "none") == []
+    assert warned(turned, edges, "source") == warned(sphere, edges, "source") == warned(sphere, edges, "target") == []
+    assert warned(box, edges, "none") == []
+    assert aligned_share(box, edges) == 1.0 and aligned_share(sphere, edges) < ALIGNED_SHARE / 10
