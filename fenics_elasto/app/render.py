@@ -4,7 +4,8 @@
 bar names -- |u| for a simulation; an estimate gets a second panel coloured by the
 distance to the target, with the target's points drawn over it. The body is a faint
 translucent shell with its edges, clamped groups (bones) are muted and see-through,
-the camera frames the organs, and each organ carries its name. The title says the
+the camera frames the organs, and each organ carries its name; a group around others
+(a matched outer surface, a gland around its nodule) is see-through. The title says the
 case and the answer (materials, misfit, and +- sigma when the estimate has it); the
 legend lists only what is drawn.
 
@@ -33,6 +34,7 @@ LEGEND_TEXT = {BODY_COLOUR: "#6b6b6b", FIXED_COLOUR: "#96804f"}  # the pale colo
 ARROWS = 150  # about this many displacement arrows on the organs
 VIEW_3D = ((1.0, -0.75, 0.45), (0.0, 0.0, 1.0))  # from the side and the front, slightly above; z up
 MAX_TARGET_POINTS = 6000  # a denser target is thinned for drawing (every point is still measured)
+SHELL_OPACITY = 0.35  # a group around others: see-through
 
 
 @contextmanager
@@ -103,9 +105,11 @@ def _picture_3d(groups, context, target, title, fixed, units, off_screen: bool, 
         plotter.subplot(1, k)
         legend = _add_surroundings(plotter, context, muted)
         clim = _shared_range(organs.values(), scalars, 0.98 if scalars == "distance" else 1.0)
-        coloured = [m for m in organs.values() if scalars in m.point_data]
-        for i, mesh in enumerate(coloured):
+        coloured = {n: m for n, m in organs.items() if scalars in m.point_data}
+        shells = _enclosing(organs)
+        for i, (name, mesh) in enumerate(coloured.items()):
             plotter.add_mesh(mesh, scalars=scalars, cmap=cmap, clim=clim, smooth_shading=True,
+                             opacity=SHELL_OPACITY if name in shells else 1.0,
                              scalar_bar_args=_bar(bar), show_scalar_bar=i == 0)
         legend += _add_unmatched(plotter, [m for m in organs.values() if scalars not in m.point_data])
         legend += _add_motion(plotter, organs) if scalars == "|u|" else []
@@ -116,6 +120,15 @@ def _picture_3d(groups, context, target, title, fixed, units, off_screen: bool, 
             plotter.add_text(heading, font_size=12, position="upper_left")
         _frame(plotter, list(organs.values()) or muted or [context])
     return plotter
+
+
+def _enclosing(organs: dict) -> set[str]:
+    """The groups whose bounding box holds another group's (a matched outer surface around
+    the organs, a gland around its nodule): drawn see-through, the inner ones would be
+    hidden behind them."""
+    boxes = {n: np.reshape(m.bounds, (3, 2)) for n, m in organs.items()}
+    return {n for n, a in boxes.items()
+            if any((a[:, 0] <= b[:, 0]).all() and (b[:, 1] <= a[:, 1]).all() for k, b in boxes.items() if k != n)}
 
 
 def _panels(organs: dict, target, units: str, matched=None) -> list[tuple]:

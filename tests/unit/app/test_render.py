@@ -89,3 +89,19 @@ def test_2d_picture(tmp_path):
     path = render(tmp_path / "flat.png", {"outline": outline}, {"outline": outline}, cells, outline.scale(1.05),
                   "estimate: disk", dim=2)
     assert_picture(path, 0.05)
+
+
+def test_a_group_around_others_is_see_through(tmp_path):
+    """A prostate MR user's nodule sat hidden inside the gland and the matched outer
+    surface, both drawn opaque: a group whose box holds another's is see-through."""
+    from fenics_elasto.app.render import SHELL_OPACITY, picture
+
+    groups = {"outer": moved_sphere((0, 0, 0), 3.0, (0, 0, 0.1)), "gland": moved_sphere((0, 0, 0), 1.5, (0, 0, 0.1)),
+              "nodule": moved_sphere((0.5, 0, 0), 0.4, (0, 0, 0.1))}
+    plotter = picture(groups, title="estimate")
+    drawn = [(pv.wrap(actor.GetMapper().GetInput()), actor.GetProperty().GetOpacity())
+             for actor in plotter.renderers[1].actors.values() if hasattr(actor.GetMapper(), "GetInput")]
+    plotter.close()
+    opacity = {name: [o for mesh, o in drawn if mesh is not None and np.allclose(mesh.bounds, surface.bounds)]
+               for name, surface in groups.items()}
+    assert opacity == {"outer": [SHELL_OPACITY], "gland": [SHELL_OPACITY], "nodule": [1.0]}
