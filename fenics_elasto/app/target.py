@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from fenics_elasto.config.problem import IN_MEMORY
 from fenics_elasto.files.readers import (check_landmark_dim, landmark_arrays, read_landmarks, surface_from_arrays,
                                          surface_of)
 from fenics_elasto.geometry.surface import Surface
@@ -24,7 +25,6 @@ from fenics_elasto.util.errors import require
 
 type SurfaceLike = str | os.PathLike[str] | Any | tuple[Any, Any]  # a file, a pyvista mesh, (points, cells)
 type LandmarksLike = str | os.PathLike[str] | tuple[Any, Any]  # a CSV file, (source, observed) arrays
-IN_MEMORY = "<in memory>"  # how [target] names what came from no file
 
 
 def _is_path(entry: object) -> bool:

@@ -17,6 +17,7 @@ from fenics_elasto.config.schema import (REQUIRED, ArrayOf, Boolean, Choice, Ela
 from fenics_elasto.config.toml import apply_overrides, read_toml
 
 COMMANDS = ("simulate", "estimate", "train")
+IN_MEMORY = "<in memory>"  # how [target] names what a Python Target gave as arrays, not files
 SIMULATE_ONLY = ("displacement", "load", "pressure")  # [boundary] tables only `simulate` uses
 
 def not_loaded(group: str, loaded: list[str]) -> str:

@@ -28,6 +28,7 @@ from dolfinx import la
 
 from scipy.spatial import cKDTree
 
+from fenics_elasto.config.problem import IN_MEMORY
 from fenics_elasto.model.elasticity import ElasticModel
 from fenics_elasto.model.dofs import NodeSet
 from fenics_elasto.util.errors import UserError, require
@@ -282,6 +283,19 @@ class Samples:
         return self.weight[:, None] * r[self.row]
 
 
+def _inside_source(scene) -> str:
+    """What the points inside the body came from, for an error line: the landmarks' or
+    the displacement field's file, or the Python Target's argument that held them."""
+    target = scene.config.get("target") or {}
+    for key in ("landmarks", "displacement"):
+        entry = target.get(key)
+        if entry == IN_MEMORY:
+            return f"Target.{key}"
+        if entry:
+            return str(scene.path.parent / entry)
+    return str(scene.path)
+
+
 class PointProbe:
     """u at fixed points anywhere in the mesh (each point evaluated on one rank).
 
@@ -384,8 +398,8 @@ class Observation:
         size = model.dofs.comm.allreduce(size, op=MPI.MAX)
         try:
             self.probe = PointProbe(model.dofs.V, self.inside.at, tolerance=0.02 * size) if len(self.inside.at) else None
-        except UserError as err:  # name the file the points came from
-            raise UserError(f"{scene.path.parent / (scene.config['target'] or {}).get('landmarks', '')}: {err}") from None
+        except UserError as err:
+            raise UserError(f"{_inside_source(scene)}: {err}") from None
         self.points = np.concatenate([self.node_points, self.inside.points])
 
     @property

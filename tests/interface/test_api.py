@@ -254,6 +254,9 @@ def test_bad_arguments_raise_user_error_with_the_cli_line(letter, tmp_path, caps
         fe.Target(displacement=(np.zeros((3, 2)), np.full((3, 2), np.nan)))
     with pytest.raises(fe.UserError, match="no such target surface file"):
         fe.estimate(fe.load_scene(path), fe.Target(surfaces=tmp_path / "absent.vtp"))
+    far = (np.array([[500.0, 500.0]]), np.array([[500.0, 501.0]]))  # was "<in memory>: 1 point(s) lie outside"
+    with pytest.raises(fe.UserError, match=r"^Target.landmarks: 1 point\(s\) lie outside the body"):
+        fe.estimate(fe.load_scene(path), fe.Target(landmarks=far))
 
 
 # --------------------------------------------------------------------------- train, render
