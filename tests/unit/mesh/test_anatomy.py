@@ -595,11 +595,11 @@ def test_scene_under_mpi(tmp_path):
 # --------------------------------------------------------------------------- the same phantom by both doors
 
 
-def test_a_box_from_a_surface_file_keeps_its_edges(tmp_path):
+def test_a_box_from_a_surface_file_keeps_its_edges(tmp_path, capsys):
     """A box given as an STL (a phantom's, a machined part's) was meshed as one smooth
     surface: elements of 8 mm cut its edges off up to 2 mm deep, and the model's body was
     not the user's. Its sharp edges are now the mesh's edges: every outer facet lies on
-    one face, and the areas and volume are the box's."""
+    one face, and the areas and volume are the box's. The patch's side walls are said."""
     box = pv.Box(bounds=(-20.0, 16.0, -15.0, 15.0, -12.0, 18.0), level=6, quads=False).clean()
     spec = write(tmp_path, {"box.stl": box, "ball.stl": sphere((0, 0, 2), 6.0)}, """
 size = 8.0
@@ -611,7 +611,11 @@ surface = "ball.stl"
 [patches.bottom]
 side = { point = [0.0, -13.0, 0.0], normal = [0.0, -1.0, 0.0] }
 """)
-    areas, volumes, scene = measures(build_scene_from_spec(spec, tmp_path / "out"))
+    assert main(["scene", str(spec), "--out", str(tmp_path / "out")]) == 0
+    out = capsys.readouterr().out
+    assert "body (box.stl): its sharp edges" in out
+    assert "patches.bottom: 1344 mm^2, 20% of it side walls reaching 2 mm past its plane" in out, out  # 2 (36 + 30) 2
+    areas, volumes, scene = measures(tmp_path / "out" / "problem.toml")
     a, b, c = 36.0, 30.0, 30.0
     assert areas["outer"] == pytest.approx(2 * (a * b + b * c + c * a), rel=1e-9)
     assert areas["bottom"] == pytest.approx(a * c + 2 * (a + c) * 2.0, rel=1e-9)  # face + 2-wide strips
