@@ -303,7 +303,9 @@ def _clear_of_slivers(body: Shell, patch: Patch, where: str, units: str) -> Patc
     raise UserError(refusal)
 
 
-WALL_COSINE = np.cos(np.radians(45.0))  # a patch's facet turned further from its plane's normal is wall
+# A patch's facet turned further than this from its plane's normal is side wall (a box's
+# walls: 90 degrees; a cap cut off a sphere of radius 12 at depth 4 has its rim at 48)
+WALL_COSINE = np.cos(np.radians(70.0))
 
 
 def _describe_patch(body: Shell, on: np.ndarray, patch: Patch, units: str) -> None:
