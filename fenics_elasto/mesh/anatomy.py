@@ -312,14 +312,14 @@ def _describe_patch(body: Shell, on: np.ndarray, patch: Patch, units: str) -> No
     """One line: the patch's area, and the share of it that is wall across its plane
     (a plane 2 mm inside a box's face takes 2 mm strips of the side walls too, which a
     user's truth had left free: +2-11 % on their gland's E)."""
-    triangles = body.triangles[on]
-    corners = body.points[triangles]
+    unit = patch.normal / np.linalg.norm(patch.normal)  # the spec's normal need not be a unit vector
+    corners = body.points[body.triangles[on]]
     normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
     area = 0.5 * np.linalg.norm(normals, axis=1)
-    wall = np.abs(normals @ patch.normal) < WALL_COSINE * 2.0 * np.maximum(area, 1e-300)
+    wall = np.abs(normals @ unit) < WALL_COSINE * 2.0 * np.maximum(area, 1e-300)
     line = f"patches.{patch.name}: {area.sum():.4g} {units}^2"
     if area[wall].sum() > 0.01 * area.sum():
-        depth = float(((corners[wall] - patch.point) @ patch.normal).max())
+        depth = float(((corners[wall] - patch.point) @ unit).max())
         line += (f", {area[wall].sum() / area.sum():.0%} of it side walls reaching {depth:.3g} {units} past its plane "
                  "(a patch takes all of the boundary past its plane, not only a face)")
     log.info(line)

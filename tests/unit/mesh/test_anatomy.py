@@ -610,11 +610,14 @@ surface = "box.stl"
 surface = "ball.stl"
 [patches.bottom]
 side = { point = [0.0, -13.0, 0.0], normal = [0.0, -1.0, 0.0] }
+[patches.top]
+side = { point = [0.0, 13.0, 0.0], normal = [0.0, 3.0, 0.0] }
 """)
     assert main(["scene", str(spec), "--out", str(tmp_path / "out")]) == 0
     out = capsys.readouterr().out
     assert "body (box.stl): its sharp edges" in out
     assert "patches.bottom: 1344 mm^2, 20% of it side walls reaching 2 mm past its plane" in out, out  # 2 (36 + 30) 2
+    assert "patches.top: 1344 mm^2, 20% of it side walls reaching 2 mm past its plane" in out, out  # a normal of length 3
     areas, volumes, scene = measures(tmp_path / "out" / "problem.toml")
     a, b, c = 36.0, 30.0, 30.0
     assert areas["outer"] == pytest.approx(2 * (a * b + b * c + c * a), rel=1e-9)
