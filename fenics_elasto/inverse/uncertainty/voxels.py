@@ -124,14 +124,23 @@ def target_edges(problem) -> list[np.ndarray | None]:
     return out
 
 
+def _label_maps(problem) -> tuple[np.ndarray, np.ndarray | None, list[np.ndarray | None]]:
+    """(the surface rows, the source's voxel edges, each row's target voxel edges); no
+    rows where neither the source nor any target came from a label map."""
+    surface = problem.misfit.surface_rows()
+    source = voxel_edges((problem.scene.config.get("uncertainty") or {}).get("source_voxels"))
+    targets = target_edges(problem)
+    if source is None and all(targets[row] is None for row in surface):
+        surface = surface[:0]
+    return surface, source, targets
+
+
 def voxel_std(problem, lin, evaluation) -> np.ndarray | None:
     """The ``voxels`` part of sigma in s (one std per constant), or None where neither
     the source nor the targets came from a label map."""
     misfit = problem.misfit
-    surface = misfit.surface_rows()
-    source = voxel_edges((problem.scene.config.get("uncertainty") or {}).get("source_voxels"))
-    targets = target_edges(problem)
-    if not len(surface) or (source is None and all(targets[row] is None for row in surface)):
+    surface, source, targets = _label_maps(problem)
+    if not len(surface):
         return None
     rows = misfit.statistical_rows(evaluation.y, evaluation.residual)
     gdim = rows.shape[1]
@@ -170,17 +179,17 @@ def grid_aligned_warnings(problem, y: np.ndarray) -> list[str]:
     model's positions, where the targets' normals are taken): the voxels part of sigma
     undercounts their staircase there."""
     misfit = problem.misfit
-    surface = misfit.surface_rows()
+    surface, source, targets = _label_maps(problem)
+    if not len(surface):
+        return []  # no label map: no closest-point queries for the normals either
     outward = misfit.offset_residual(y)
-    if outward is None or not len(surface):
+    if outward is None:
         return []
     normals = -outward[surface]
     closed = np.linalg.norm(normals, axis=1) > 0.5  # rows of closed surfaces (an outline has none)
     maps: dict[bytes, tuple[str, np.ndarray, list[int]]] = {}
-    source = voxel_edges((problem.scene.config.get("uncertainty") or {}).get("source_voxels"))
     if source is not None:
         maps[b"source"] = ("the source's label map", source, list(np.flatnonzero(closed)))
-    targets = target_edges(problem)
     for i in np.flatnonzero(closed):
         edges = targets[surface[i]]
         if edges is not None:  # the targets' maps on one grid together
