@@ -96,6 +96,7 @@ def _picture_3d(groups, context, target, title, fixed, units, off_screen: bool, 
     organs = {n: m for n, m in groups.items() if n not in fixed and m is not None and m.n_points}
     muted = [groups[n] for n in fixed if n in groups and groups[n] is not None and groups[n].n_points]
     panels = _panels(organs, target, units, matched)
+    shells = _enclosing(organs)  # the same in every panel
     width = 1400 if len(panels) == 1 else 1000 * len(panels)
     plotter = offscreen_plotter(off_screen, shape=(2, len(panels)), row_weights=[1, 9], groups=[(0, np.s_[:])],
                                 window_size=(width, 1000), border=False)
@@ -106,7 +107,6 @@ def _picture_3d(groups, context, target, title, fixed, units, off_screen: bool, 
         legend = _add_surroundings(plotter, context, muted)
         clim = _shared_range(organs.values(), scalars, 0.98 if scalars == "distance" else 1.0)
         coloured = {n: m for n, m in organs.items() if scalars in m.point_data}
-        shells = _enclosing(organs)
         for i, (name, mesh) in enumerate(coloured.items()):
             plotter.add_mesh(mesh, scalars=scalars, cmap=cmap, clim=clim, smooth_shading=True,
                              opacity=SHELL_OPACITY if name in shells else 1.0,
