@@ -284,8 +284,12 @@ def _rank_warnings(params, fit, post) -> list[str]:
     if not fit or "shift_at_half_rank_s" not in fit or post is None:
         return []
     out = []
+    # against sigma without the move's own share of it (parts.RANK_PART), which a move of
+    # any size would otherwise keep within a few of its sigmas
+    own = post.rank_part_s if post.rank_part_s is not None else np.zeros(len(post.labels))
+    others = np.sqrt(np.maximum(post.std_s**2 - own**2, 0.0))
     for label, is_E, shift, shift_s, sd, noise_sd in zip(params.labels, params.is_E, fit["shift_at_half_rank"].values(),
-                                                          fit["shift_at_half_rank_s"], post.std_s, post.noise_part_s):
+                                                          fit["shift_at_half_rank_s"], others, post.noise_part_s):
         if sd > 0 and abs(shift_s) > max(BIAS_MIN[0] if is_E else BIAS_MIN[1], RANK_SIGMAS * sd):
             moved = f"{100 * shift:+.0f} %" if is_E else f"{shift:+.3f}"
             far = "at least " if abs(shift_s) >= (1 - 1e-6) * RANK_REACH * noise_sd else ""  # the search's edge

@@ -72,6 +72,7 @@ class Posterior:
     mesh_shift_s: np.ndarray | None = None  # how far a degree higher would move the answer, where computed (parts.py)
     prior_shift_s: np.ndarray | None = None  # how far a 100x weaker prior would move it, where measured (report.prior_shift)
     mesh_moves: tuple[float, float] | None = None  # the degree-3 solve's move of the observed points, and their motion
+    rank_part_s: np.ndarray | None = None  # the half-rank shift's share of the bases part, where measured (parts.py)
 
     @property
     def method(self) -> str:

@@ -17,6 +17,7 @@ from fenics_elasto.inverse.estimator import Estimator, estimate
 from fenics_elasto.inverse.report import (RANK_REACH, RANK_SIGMAS, _bias_warnings, _rank_warnings, fit_of_bases,
                                          half_rank_shift)
 from fenics_elasto.inverse.options import Options
+from fenics_elasto.inverse.uncertainty.parts import RANK_PART, bases_part
 from fenics_elasto.inverse.reduction.bases import Bases, missing_wall_motion, reach_warning, train_bases
 from fenics_elasto.model.scene import load_scene
 from fenics_elasto.inverse.reduction import synthetic
@@ -223,7 +224,7 @@ def test_bases_that_miss_wall_motion_say_how_far_it_moves_E(tmp_path):
 
 def _spread(sd: float) -> SimpleNamespace:
     """A posterior's stds as _rank_warnings reads them: one constant, all of it noise."""
-    return SimpleNamespace(std_s=np.array([sd]), noise_part_s=np.array([sd]))
+    return SimpleNamespace(labels=["inclusion.E"], std_s=np.array([sd]), noise_part_s=np.array([sd]), rank_part_s=None)
 
 
 def test_the_half_rank_shift_is_where_an_estimate_at_half_the_rank_goes(tmp_path):
@@ -262,8 +263,14 @@ def test_the_half_rank_shift_is_where_an_estimate_at_half_the_rank_goes(tmp_path
     assert np.isclose(capped[0], np.sign(shift[0]) * RANK_REACH * sd, rtol=1e-9), (capped, shift)
     assert len(far) == 1 and "at least" in far[0], far
     # the edge is in the noise's stds (the search's), whatever the model's parts add to sigma
-    wider = _rank_warnings(estimator.params, fit, SimpleNamespace(std_s=np.array([1.3 * sd]), noise_part_s=np.array([sd])))
+    wider = _rank_warnings(estimator.params, fit, SimpleNamespace(labels=["inclusion.E"], std_s=np.array([1.3 * sd]),
+                                                                  noise_part_s=np.array([sd]), rank_part_s=None))
     assert len(wider) == 1 and "at least" in wider[0], wider
+    # sigma holds half the move (parts.bases_part), and the warning weighs the move against the rest of sigma
+    bases, rank = bases_part(fit, 1)
+    assert rank[0] == pytest.approx(RANK_PART * abs(capped[0])) and bases[0] == pytest.approx(rank[0])
+    counted = SimpleNamespace(labels=["inclusion.E"], std_s=np.hypot(sd, rank), noise_part_s=np.array([sd]), rank_part_s=rank)
+    assert len(_rank_warnings(estimator.params, fit, counted)) == 1
 
     _, best, _ = estimator.final()  # a user who stopped the run gets the share explained, not two more searches
     assert "shift_at_half_rank" in fit_of_bases(estimator, theta, best)
