@@ -36,7 +36,9 @@ LEVERS = {"mesh": "a finer source mesh at the organs (about 4x smaller per halvi
 def add_model_error(problem, post: Posterior, theta, evaluation, lin, fit: dict | None,
                     prepared: HigherDegreeModel | None = None) -> None:
     """Sets ``post.model_parts_s``: the mesh's and the bases' first-order shifts of the
-    answer, as stds. Neither is applied as a correction: on the pelvis phantom's
+    answer, as stds (the bases' with half their half-rank move: ``bases_part``, whose share
+    ``post.rank_part_s`` keeps), and the voxels' staircase where a label map is in play.
+    None is applied as a correction: on the pelvis phantom's
     straight-sided gmsh source (curved on load, rippled wall motion) the degree-3 shift
     was -3 % where the answer was 4 % low already -- the geometry's error and the wall
     motion's, which a higher degree on the same cells cannot see, were larger.
