@@ -39,6 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
+from fenics_elasto.geometry.surface import Surface
 from fenics_elasto.mesh.labelmaps import coarsen, label_shells
 from fenics_elasto.mesh.repair import Shell, closed_shells, cut_by_planes, enclosed_volume, sharp_edges, triangle_areas
 from fenics_elasto.util.budget import CELLS_PER_VOLUME, check_mesh_cost
@@ -314,7 +315,7 @@ def _describe_patch(body: Shell, on: np.ndarray, patch: Patch, units: str) -> No
     user's truth had left free: +2-11 % on their gland's E)."""
     unit = patch.normal / np.linalg.norm(patch.normal)  # the spec's normal need not be a unit vector
     corners = body.points[body.triangles[on]]
-    normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    normals = Surface(body.points, body.triangles[on]).area_normals  # twice each facet's area
     area = 0.5 * np.linalg.norm(normals, axis=1)
     wall = np.abs(normals @ unit) < WALL_COSINE * 2.0 * np.maximum(area, 1e-300)
     line = f"patches.{patch.name}: {area.sum():.4g} {units}^2"
