@@ -88,16 +88,11 @@ def staircase(normals: np.ndarray, edges: np.ndarray) -> tuple[np.ndarray, np.nd
     return std, np.clip(period / 6.0, CORRELATION_SHARE * lengths.max(), TERRACE_CAP * lengths.max())
 
 
-def correlated_sum(weights: np.ndarray, positions: np.ndarray, length) -> float:
-    """sum_ij w_i w_j rho_ij, rho the Gaussian of each point's correlation ``length`` (one
-    for all, or one each: Gibbs' kernel, (2 l_i l_j / s)^(d/2) exp(-|x_i - x_j|^2 / s),
-    s = l_i^2 + l_j^2, in d dimensions: a covariance), the pairs beyond REACH of the
-    longest left out."""
-    return float(correlated_sums(weights[None], positions, length)[0])
-
-
 def correlated_sums(weights: np.ndarray, positions: np.ndarray, length) -> np.ndarray:
-    """``correlated_sum`` for each row of weights, the pairs found once."""
+    """Per row w of ``weights``: sum_ij w_i w_j rho_ij, rho the Gaussian of each point's
+    correlation ``length`` (one for all, or one each: Gibbs' kernel,
+    (2 l_i l_j / s)^(d/2) exp(-|x_i - x_j|^2 / s), s = l_i^2 + l_j^2, in d dimensions: a
+    covariance), the pairs beyond REACH of the longest left out and found once for all rows."""
     lengths = np.broadcast_to(np.asarray(length, float), weights.shape[1:])
     total = np.sum(weights**2, axis=1)
     pairs = cKDTree(positions).query_pairs(REACH * float(lengths.max(initial=0.0)), output_type="ndarray")
@@ -153,6 +148,7 @@ def voxel_std(problem, lin, evaluation) -> np.ndarray | None:
     count = len(problem.observation.points)
     for state in range(problem.states.count):
         mine = [i for i, row in enumerate(surface) if row // count == state and targets[row] is not None]
+        # one field per target surface: each surface holds an array of its own (misfit.label_map_targets)
         for edges in {id(targets[surface[i]]): targets[surface[i]] for i in mine}.values():
             same = [i for i in mine if targets[surface[i]] is edges]
             variance += _variance(pull[:, same], normals[same], evaluation.y[surface[same]], edges)

@@ -9,7 +9,7 @@ from scipy.spatial.transform import Rotation
 from fenics_elasto.config.problem import read_problem
 from fenics_elasto.geometry.label_surfaces import label_surface
 from fenics_elasto.inverse.uncertainty.voxels import (ALIGNED_SHARE, CORRELATION_SHARE, REACH, VOXEL_SHARE, aligned_share,
-                                                     correlated_sum, grid_aligned_warnings, normal_std, staircase,
+                                                     correlated_sums, grid_aligned_warnings, normal_std, staircase,
                                                      voxel_edges)
 from fenics_elasto.util.errors import UserError
 
@@ -51,7 +51,11 @@ def test_a_label_surface_is_off_by_the_share_the_model_says(spacing, degrees):
     assert 0.4 * assumed < shared < 1.8 * assumed
 
 
-def test_correlated_sum_is_the_quadratic_form():
+def correlated_sum(w, x, length) -> float:
+    return float(correlated_sums(w[None], x, length)[0])
+
+
+def test_correlated_sums_is_the_quadratic_form():
     """sum_ij w_i w_j rho(|x_i - x_j|) against the dense sum (beyond REACH lengths the
     pairs are left out: rho < 0.012 there)."""
     rng = np.random.default_rng(3)
