@@ -50,7 +50,7 @@ from fenics_elasto.inverse.uncertainty.answer import AnswerUncertainty
 from fenics_elasto.inverse.uncertainty.identifiability import check_identifiable
 from fenics_elasto.inverse.uncertainty.mesh_error import HigherDegreeModel
 from fenics_elasto.inverse.uncertainty.parts import add_model_error, largest_part, unresolved_warnings
-from fenics_elasto.inverse.uncertainty.voxels import grid_aligned_warnings
+from fenics_elasto.inverse.uncertainty.voxels import grid_aligned_warnings, mixed_source_warnings
 from fenics_elasto.inverse.uncertainty.posterior import posterior_record, target_offset
 from fenics_elasto.util.errors import require
 from fenics_elasto.util.interrupts import Interrupted
@@ -376,6 +376,7 @@ def _run(estimator: Estimator, warnings: list[str], extent_warnings: list[str], 
     uncertainty_seconds = time.perf_counter() - clock
     warnings = (warnings + estimator.uncertainty.warnings + run_warnings(estimator, theta, interrupted, fit, post)
                 + unresolved_warnings(post) + grid_aligned_warnings(problem, best.evaluation.y)
+                + mixed_source_warnings(problem)
                 + extent_warnings + target_warnings(problem, best, estimator.options.state_noise))
     for text in warnings:
         log.warning(text)

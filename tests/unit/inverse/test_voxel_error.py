@@ -9,8 +9,8 @@ from scipy.spatial.transform import Rotation
 from fenics_elasto.config.problem import read_problem
 from fenics_elasto.geometry.label_surfaces import label_surface
 from fenics_elasto.inverse.uncertainty.voxels import (ALIGNED_SHARE, CORRELATION_SHARE, REACH, VOXEL_SHARE, aligned_share,
-                                                     correlated_sums, grid_aligned_warnings, normal_std, staircase,
-                                                     voxel_edges)
+                                                     correlated_sums, grid_aligned_warnings, mixed_source_warnings,
+                                                     normal_std, staircase, voxel_edges)
 from fenics_elasto.util.errors import UserError
 
 RADIUS = 11.0  # mm: a user's tumour
@@ -125,24 +125,31 @@ def test_faces_near_the_grid_are_off_by_the_share_the_model_says(spacing, degree
         assert lengths.max() > 2 * CORRELATION_SHARE * max(spacing)
 
 
-def test_a_label_map_mostly_along_its_grid_is_said():
-    """One line per label map whose matched surfaces lie along its grid (a face's offset:
-    one unknown over all of it); none a few degrees off it, nor for a sphere."""
+def fake_problem(normals, source_edges, target_edges):
+    """The parts of a problem the label maps' warnings read: one state, one target surface
+    (from a label map of ``target_edges``, or a file: None), matched at points whose
+    target normals are ``normals``, the source from a label map of ``source_edges`` or not."""
     from types import SimpleNamespace
 
     from fenics_elasto.geometry.surface import Surface
     from fenics_elasto.geometry.targets import SurfaceTerm
 
+    n = len(normals)
+    misfit = SimpleNamespace(surface_rows=lambda: np.arange(n), offset_residual=lambda y: -normals)
+    surface = Surface(np.eye(3), np.array([[0, 1, 2]]))
+    surface.voxels = target_edges
+    target = SimpleNamespace(count=n, slices=[slice(0, n)], terms=[SurfaceTerm([surface], np.zeros(n, int))])
+    config = {} if source_edges is None else {"uncertainty": {"source_voxels": source_edges.tolist()}}
+    return SimpleNamespace(misfit=misfit, scene=SimpleNamespace(config=config), states=SimpleNamespace(misfits=[target]))
+
+
+def test_a_label_map_mostly_along_its_grid_is_said():
+    """One line per label map whose matched surfaces lie along its grid (a face's offset:
+    one unknown over all of it); none a few degrees off it, nor for a sphere."""
+
     def warned(normals, edges, where):
-        n = len(normals)
-        misfit = SimpleNamespace(surface_rows=lambda: np.arange(n), offset_residual=lambda y: -normals)
-        surface = Surface(np.eye(3), np.array([[0, 1, 2]]))
-        surface.voxels = edges if where == "target" else None
-        target = SimpleNamespace(count=n, slices=[slice(0, n)], terms=[SurfaceTerm([surface], np.zeros(n, int))])
-        config = {"uncertainty": {"source_voxels": edges.tolist()}} if where == "source" else {}
-        problem = SimpleNamespace(misfit=misfit, scene=SimpleNamespace(config=config),
-                                  states=SimpleNamespace(misfits=[target]))
-        return grid_aligned_warnings(problem, np.zeros((n, 3)))
+        problem = fake_problem(normals, edges if where == "source" else None, edges if where == "target" else None)
+        return grid_aligned_warnings(problem, np.zeros((len(normals), 3)))
 
     _, _, box, edges = voxelised_box((0.8, 0.8, 1.5), 0.0)
     lines = warned(box, edges, "source")
@@ -154,3 +161,15 @@ def test_a_label_map_mostly_along_its_grid_is_said():
     assert warned(turned, edges, "source") == warned(sphere, edges, "source") == warned(sphere, edges, "target") == []
     assert warned(box, edges, "none") == []
     assert aligned_share(box, edges) == 1.0 and aligned_share(sphere, edges) < ALIGNED_SHARE / 10
+
+
+def test_a_label_map_source_against_surface_files_is_said():
+    """A label-map source against target surface files: one line (a shape error no part
+    counts); against a label map, or an exact source against either, none."""
+    _, _, sphere, edges = voxelised_sphere((0.8, 0.8, 1.5), 5.0)
+    lines = mixed_source_warnings(fake_problem(sphere, edges, None))
+    assert len(lines) == 1 and lines[0].startswith("the source came from a label map and the target from surface files")
+    assert "[target.labels]" in lines[0]
+    assert mixed_source_warnings(fake_problem(sphere, edges, edges)) == []
+    for target in (None, edges):
+        assert mixed_source_warnings(fake_problem(sphere, None, target)) == []
