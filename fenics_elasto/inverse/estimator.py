@@ -389,7 +389,8 @@ def _run(estimator: Estimator, warnings: list[str], extent_warnings: list[str], 
     if smoothing is not None:
         record["uncertainty"]["target_smoothed"] = smoothing
     if post is not None:
-        for line in describe_uncertainty(post, theta) + largest_part(post) + describe_offset(post):
+        fits = problem.misfit.group_distances(best.evaluation.residual, problem.scene.matched)
+        for line in describe_uncertainty(post, theta) + largest_part(post, fits) + describe_offset(post):
             log.info(line)
     state_forces = {}
     if problem.states.count > 1:  # each state's distances and forces; ``forces`` and ``u`` are the first's

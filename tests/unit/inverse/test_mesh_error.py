@@ -119,9 +119,17 @@ def test_the_set_up_made_ahead_gives_the_solution_made_at_once(tmp_path):
 
 def test_the_largest_part_names_its_lever():
     parts = {"noise": np.array([1.0, 1.0]), "mesh": np.array([4.0, 0.1]), "bases": np.array([0.2, 0.3])}
-    post = SimpleNamespace(labels=["prostate.E", "tissue.nu"], parts_s=lambda: parts)
+    post = SimpleNamespace(labels=["prostate.E", "tissue.nu"], parts_s=lambda: parts, widening=np.array([1.0, 1.0]))
     assert largest_part(post) == [f"prostate.E: largest part of sigma: mesh; it shrinks with {LEVERS['mesh']}",
                                   "tissue.nu: largest part of sigma: noise"]
+    # a noise part widened 3x or more by a structured residual: its lever is the fit, the worst group first
+    post.widening = np.array([1.0, 8.2])
+    fits = {"outer": 0.049, "tumour_surface": 0.199}
+    (_, line) = largest_part(post, fits)
+    assert line.startswith("tissue.nu: largest part of sigma: noise, most of it a structured residual (the widening)")
+    assert "(rms distance per group: tumour_surface 0.199, outer 0.049)" in line and "where the fit is worst" in line
+    post.widening = np.array([1.0, 2.9])  # mostly noise still
+    assert largest_part(post, fits)[1] == "tissue.nu: largest part of sigma: noise"
 
 
 def test_a_degree_3_solve_that_moves_the_points_more_than_they_moved_is_said():
