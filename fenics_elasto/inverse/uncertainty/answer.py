@@ -139,9 +139,13 @@ class AnswerUncertainty:
         low, high = profile_interval(branch, s_hat, std, noise, bounds)
         log.info(f"interval on the lowest minimum's branch, threshold raised by the spread "
                  f"({time.perf_counter() - start:.1f} s)")
+        # The cause only where the target was smoothed for its roughness: an outside check's
+        # exact, smooth targets (a liver pressed by a probe) read "a target rougher than its
+        # sampling" too, which sent the user to look for noise that was not there.
+        cause = ": a target rougher than its sampling" if self.problem.misfit.smoothing() is not None else ""
         self.warnings.append(
             f"{self.params.labels[0]}: the inner fit ends in minima up to {post.inner_spread:.3g} apart in Phi* from "
             f"different starts ({post.inner_spread / threshold(post.noise_std):.2g}x what the noise moves in "
-            "a 95 % interval: a target rougher than its sampling): the interval allows for them")
+            f"a 95 % interval{cause}): the interval allows for them")
         return (max(min(low, s_hat - reach), bounds[0]), min(max(high, s_hat + reach), bounds[1])), False
 

@@ -734,6 +734,30 @@ def test_fits_at_a_bound_of_s_are_no_starts_for_the_inner_spread():
     assert used == [3.5, 3.8, 4.0, 4.1, 4.3]  # the bounds' fits and the answer's own left out
 
 
+def test_inner_minima_name_a_rough_target_only_where_it_was_smoothed():
+    """Minima far apart at the answer widen the interval and are said; "a target rougher
+    than its sampling" only where the target was smoothed for its roughness (an outside
+    check's exact, smooth targets read it too)."""
+    from fenics_elasto.inverse.uncertainty.answer import AnswerUncertainty
+
+    lines = []
+    for smoothing in (None, {"outer": 0.1}):
+        answer = object.__new__(AnswerUncertainty)
+        answer.warnings = []
+        answer.surrogate = SimpleNamespace(inner_spread=lambda s, starts, cold: (5.0, cold.q),
+                                           fit=lambda s, q: SimpleNamespace(value=1.0 + (float(s[0]) - 3.9) ** 2))
+        answer.params = SimpleNamespace(s_bounds=lambda: [(0.0, 8.0)], labels=["tumour.E"])
+        answer.problem = SimpleNamespace(misfit=SimpleNamespace(smoothing=lambda smoothing=smoothing: smoothing))
+        post = SimpleNamespace(s=np.array([3.9]), laplace_std_s=np.array([0.1]), noise_std=1.0, inner_spread=0.0)
+        fits = [(s, SimpleNamespace(q=np.array([s]), value=1.0)) for s in (3.5, 3.9, 4.3)]
+        (low, high), jagged = answer._allow_for_inner_minima(post, fits, (3.8, 4.0), False)
+        assert low < 3.8 and high > 4.0 and not jagged  # widened for the minima
+        (line,) = answer.warnings
+        lines.append(line)
+    assert "tumour.E: the inner fit ends in minima up to 5 apart in Phi* from different starts" in lines[0]
+    assert "rougher" not in lines[0] and "a target rougher than its sampling): the interval allows" in lines[1]
+
+
 class _Quadratic:
     """A landmark-like misfit, Phi = |y - t|^2 / 2: Gauss-Newton's model of it is exact."""
 
