@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from fenics_elasto.config.schema import (REQUIRED, Choice, GroupName, Key, Labels, Named, Names, Number, String,
+from fenics_elasto.config.schema import (REQUIRED, Boolean, Choice, GroupName, Key, Labels, Named, Names, Number, String,
                                          Table, Vector, Where, show)
 from fenics_elasto.config.toml import apply_overrides, read_toml
 
@@ -94,7 +94,8 @@ SCENE_SPEC = Table({
                           "[cavities.NAME] tables", group_names=True), {}),
     "patches": Key(Named(Table({"side": Key(Table({
         "point": Key(Vector((3,)), REQUIRED), "normal": Key(Vector((3,), nonzero=True), REQUIRED),
-    }, expected="a table {point, normal}"), REQUIRED)}), "[patches.NAME] tables", group_names=True), {}),
+    }, expected="a table {point, normal}"), REQUIRED), "loaded": Key(Boolean(), False)},
+        expected="a table {side, loaded}"), "[patches.NAME] tables", group_names=True), {}),
 }, after=_check_spec)
 
 

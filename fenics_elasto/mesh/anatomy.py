@@ -64,6 +64,7 @@ FINE_SURFACE = 4.0
 # Default materials of the written problem.toml: the body is the reference.
 TISSUE_E, TISSUE_NU = 10.0, 0.4
 INFLATION = 0.05  # the example [boundary.displacement] of every cavity: 5 % inflation
+PUSH = 0.03  # ... and of every loaded patch: pushed in along its normal by 3 % of the body's size
 
 
 # --------------------------------------------------------------------------- the spec
@@ -543,9 +544,12 @@ def problem_toml(spec: dict, shells: list[Shell], msh_name: str, voxels: np.ndar
     """A ready problem.toml: every group listed, every region estimated against the body;
     ``voxels``: the label map's voxel edges (columns), where the scene was segmented from one."""
     body = spec["body"]["material"]
-    regions, cavities, patches = list(spec["regions"]), list(spec["cavities"]), list(spec["patches"])
-    fixed = patches or ["outer"]
-    matched = cavities + [f"{r}_surface" for r in regions] or ["outer"]
+    regions, cavities = list(spec["regions"]), list(spec["cavities"])
+    held = [name for name, patch in spec["patches"].items() if not patch["loaded"]]
+    pressed = [name for name, patch in spec["patches"].items() if patch["loaded"]]
+    fixed = held or ["outer"]
+    # a pressed patch moves the body's free outer surface most: observed, as in elastography
+    matched = cavities + [f"{r}_surface" for r in regions] + (["outer"] if pressed else []) or ["outer"]
     lines = [
         f"# Scene built by `fenics-elasto scene` from surface files; lengths in {spec['units']} (the files' unit).",
         f'mesh = "{msh_name}"',
@@ -562,24 +566,7 @@ def problem_toml(spec: dict, shells: list[Shell], msh_name: str, voxels: np.ndar
                   f"E  = {{ estimate = true, initial = {3 * TISSUE_E:g}, bounds = [{TISSUE_E / 5:g}, {TISSUE_E * 50:g}] }}",
                   f"nu = {TISSUE_NU:g}"]
     lines += ["", f"[materials.{body}]", f"E  = {TISSUE_E:g}             # the reference", f"nu = {TISSUE_NU:g}", ""]
-    lines += ["[boundary]"]
-    if not patches:
-        lines += ["# No [patches] in the spec: the whole outer boundary is clamped. Clamp only where the",
-                  "# body is held (bones, a table) by giving patches and listing them here."]
-    else:
-        lines += ["# Every patch is clamped here: move a patch that carries the load (a probe, a plate pressed",
-                  "# on the body) to loaded, and to matched if its deformed place is observed."]
-    if not cavities:
-        lines += ["# No cavities: nothing carries the unknown forces yet; list the facet groups that do."]
-    lines += [f"fixed   = {_toml_list(fixed)}",
-              f"loaded  = {_toml_list(cavities)}" + ("      # unknown forces on the cavity walls" if cavities else ""),
-              f"matched = {_toml_list(matched)}",
-              'match_nodes = "auto"']
-    for cavity in cavities:
-        centre = np.mean([s.points.mean(axis=0) for s in shells if s.role == "cavity" and s.name == cavity], axis=0)
-        lines += ["", f"# Used by `simulate` (a synthetic target): {cavity} inflated by {INFLATION:.0%} about its centre.",
-                  f"[boundary.displacement.{cavity}]", f"scale  = {INFLATION:g}",
-                  "center = [" + ", ".join(f"{c:.6g}" for c in centre) + "]"]
+    lines += _boundary_lines(spec, shells, fixed, cavities + pressed, matched)
     lines += ["", "# The observed (deformed) surfaces, one per matched group; or `surface = ...` or `landmarks = ...`.",
               "[target.surfaces]"]
     lines += [f'{group} = "target_{group}.stl"' for group in matched]
@@ -588,6 +575,39 @@ def problem_toml(spec: dict, shells: list[Shell], msh_name: str, voxels: np.ndar
         lines += ["", "# The label map's voxels, as edges in world coordinates: how far its segmentation may be off,",
                   "# a part of sigma (\"voxels\").", "[uncertainty]", f"source_voxels = [{rows}]"]
     return "\n".join(lines) + "\n"
+
+
+def _boundary_lines(spec: dict, shells: list[Shell], fixed: list[str], loaded: list[str], matched: list[str]) -> list[str]:
+    """problem.toml's [boundary] and the example motions ``simulate`` uses: each cavity
+    inflated, each loaded patch pushed in along its normal."""
+    lines = ["[boundary]"]
+    if not spec["patches"]:
+        lines += ["# No [patches] in the spec: the whole outer boundary is clamped. Clamp only where the",
+                  "# body is held (bones, a table) by giving patches and listing them here."]
+    else:
+        lines += ["# Patches are clamped unless the spec says `loaded = true` (a probe, a plate pressed on the body):",
+                  "# move a patch between fixed and loaded here, and to matched if its deformed place is observed."]
+    if not loaded:
+        lines += ["# Nothing loaded: nothing carries the unknown forces yet; list the facet groups that do."]
+    lines += [f"fixed   = {_toml_list(fixed)}",
+              f"loaded  = {_toml_list(loaded)}" + ("      # unknown forces on these walls" if loaded else ""),
+              f"matched = {_toml_list(matched)}",
+              'match_nodes = "auto"']
+    for name in loaded:
+        lines += [""] + _example_motion(spec, shells, name)
+    return lines
+
+
+def _example_motion(spec: dict, shells: list[Shell], name: str) -> list[str]:
+    if name in spec["cavities"]:
+        centre = np.mean([s.points.mean(axis=0) for s in shells if s.role == "cavity" and s.name == name], axis=0)
+        return [f"# Used by `simulate` (a synthetic target): {name} inflated by {INFLATION:.0%} about its centre.",
+                f"[boundary.displacement.{name}]", f"scale  = {INFLATION:g}",
+                "center = [" + ", ".join(f"{c:.6g}" for c in centre) + "]"]
+    normal = np.asarray(spec["patches"][name]["side"]["normal"], float)
+    push = -PUSH * float(np.linalg.norm(np.ptp(shells[0].points, axis=0))) * normal / np.linalg.norm(normal) + 0.0  # no -0
+    return [f"# Used by `simulate` (a synthetic target): {name} pushed in along its normal by {PUSH:.0%} of the body's size.",
+            f"[boundary.displacement.{name}]", "value = [" + ", ".join(f"{c:.6g}" for c in push) + "]"]
 
 
 # --------------------------------------------------------------------------- the command

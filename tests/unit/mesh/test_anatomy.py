@@ -771,3 +771,32 @@ def test_a_patch_plane_crossing_a_hair_from_a_point_is_moved_clear():
     assert 0 < abs(shift) <= NUDGE_STEPS * NUDGE_SHARE * 1.5 * edge, shift
     assert _closest_corner(body, moved.point, normal)[0] >= NUDGE_CLEAR
     assert any(line.startswith("note: spec: patches.side: its plane passed") and "moved" in line for line in lines), lines
+
+
+def test_a_loaded_patch_is_loaded_matched_beside_the_outer_surface_and_pushed_by_simulate(tmp_path):
+    """``[patches.probe] loaded = true``: problem.toml loads it (clamping the other patch),
+    matches the free outer surface beside the organs, and gives ``simulate`` a push along
+    its normal -- a probe pressing an organ without a --set for every list (an outside
+    user needed three on every command)."""
+    spec = write(tmp_path, {"body.stl": sphere((0, 0, 0), 12.0, nsub=4), "ball.stl": sphere((2, 0, 0), 4.0)}, """
+size = 4.0
+organ_size = 2.5
+[body]
+surface = "body.stl"
+[regions.ball]
+surface = "ball.stl"
+[patches.back]
+side = { point = [0.0, -9.0, 0.0], normal = [0.0, -1.0, 0.0] }
+[patches.probe]
+side = { point = [0.0, 9.0, 0.0], normal = [0.0, 2.0, 0.0] }
+loaded = true
+""")
+    problem = build_scene_from_spec(spec, tmp_path / "scene")
+    text = problem.read_text()
+    assert 'fixed   = ["back"]' in text and 'loaded  = ["probe"]' in text
+    assert 'matched = ["ball_surface", "outer"]' in text
+    push = 0.03 * np.linalg.norm(np.ptp(pv.read(tmp_path / "body.stl").points, axis=0))  # 3 % of the body's size
+    assert "[boundary.displacement.probe]" in text and f"value = [0, {-push:.6g}, 0]" in text
+    assert main(["simulate", str(problem), "--out", str(tmp_path / "result")]) == 0
+    result = json.loads((tmp_path / "result" / "result.json").read_text())
+    assert result["max_displacement"] == pytest.approx(push, rel=2e-2)
