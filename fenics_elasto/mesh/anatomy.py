@@ -549,7 +549,8 @@ def problem_toml(spec: dict, shells: list[Shell], msh_name: str, voxels: np.ndar
     pressed = [name for name, patch in spec["patches"].items() if patch["loaded"]]
     fixed = held or ["outer"]
     # a pressed patch moves the body's free outer surface most: observed, as in elastography
-    matched = cavities + [f"{r}_surface" for r in regions] + (["outer"] if pressed else []) or ["outer"]
+    # (not where no patch holds the body: then the rest of `outer` is clamped)
+    matched = cavities + [f"{r}_surface" for r in regions] + (["outer"] if pressed and held else []) or ["outer"]
     lines = [
         f"# Scene built by `fenics-elasto scene` from surface files; lengths in {spec['units']} (the files' unit).",
         f'mesh = "{msh_name}"',

@@ -800,3 +800,13 @@ loaded = true
     assert main(["simulate", str(problem), "--out", str(tmp_path / "result")]) == 0
     result = json.loads((tmp_path / "result" / "result.json").read_text())
     assert result["max_displacement"] == pytest.approx(push, rel=2e-2)
+    # no patch holding the body: the rest of the outer surface is clamped, so not matched
+    alone = tmp_path / "alone" / "spec.toml"
+    alone.parent.mkdir()
+    held = "[patches.back]\nside = { point = [0.0, -9.0, 0.0], normal = [0.0, -1.0, 0.0] }\n"
+    assert held in spec.read_text()
+    alone.write_text(spec.read_text().replace(held, ""))
+    for name in ("body.stl", "ball.stl"):
+        (alone.parent / name).write_bytes((tmp_path / name).read_bytes())
+    text = build_scene_from_spec(alone, tmp_path / "alone" / "scene").read_text()
+    assert 'fixed   = ["outer"]' in text and 'loaded  = ["probe"]' in text and 'matched = ["ball_surface"]' in text
