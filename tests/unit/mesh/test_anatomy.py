@@ -778,7 +778,8 @@ def test_a_loaded_patch_is_loaded_matched_beside_the_outer_surface_and_pushed_by
     matches the free outer surface beside the organs, and gives ``simulate`` a push along
     its normal -- a probe pressing an organ without a --set for every list (an outside
     user needed three on every command)."""
-    spec = write(tmp_path, {"body.stl": sphere((0, 0, 0), 12.0, nsub=4), "ball.stl": sphere((2, 0, 0), 4.0)}, """
+    surfaces = {"body.stl": sphere((0, 0, 0), 12.0, nsub=4), "ball.stl": sphere((2, 0, 0), 4.0)}
+    spec = write(tmp_path, surfaces, """
 size = 4.0
 organ_size = 2.5
 [body]
@@ -801,12 +802,8 @@ loaded = true
     result = json.loads((tmp_path / "result" / "result.json").read_text())
     assert result["max_displacement"] == pytest.approx(push, rel=2e-2)
     # no patch holding the body: the rest of the outer surface is clamped, so not matched
-    alone = tmp_path / "alone" / "spec.toml"
-    alone.parent.mkdir()
     held = "[patches.back]\nside = { point = [0.0, -9.0, 0.0], normal = [0.0, -1.0, 0.0] }\n"
     assert held in spec.read_text()
-    alone.write_text(spec.read_text().replace(held, ""))
-    for name in ("body.stl", "ball.stl"):
-        (alone.parent / name).write_bytes((tmp_path / name).read_bytes())
+    alone = write(tmp_path / "alone", surfaces, spec.read_text().replace(held, ""))
     text = build_scene_from_spec(alone, tmp_path / "alone" / "scene").read_text()
     assert 'fixed   = ["outer"]' in text and 'loaded  = ["probe"]' in text and 'matched = ["ball_surface"]' in text
