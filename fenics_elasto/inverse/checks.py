@@ -288,7 +288,12 @@ def stray_group(misfit, residual: np.ndarray, groups: list[str], always: bool = 
                 "and the set-up beside it (what is clamped or loaded there that the body did not have)")
     if not always:
         return None
-    return "rms distance per group, the worst first: " + ", ".join(f"{g} {fits[g]:.3g}" for g in order)
+    return "rms distance per group, the worst first: " + worst_first(fits)
+
+
+def worst_first(fits: dict[str, float]) -> str:
+    """``group rms, ...`` for each group's rms distance (``misfit.group_distances``), the worst first."""
+    return ", ".join(f"{g} {fits[g]:.3g}" for g in sorted(fits, key=fits.__getitem__, reverse=True))
 
 
 # Surfaces that fit this much closer than the noise they were weighed with beside landmarks

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from fenics_elasto.inverse.checks import worst_first
 from fenics_elasto.inverse.uncertainty.mesh_error import HigherDegreeModel, mesh_error_wanted, mesh_shift
 from fenics_elasto.inverse.uncertainty.posterior import Posterior
 from fenics_elasto.inverse.uncertainty.voxels import voxel_std
@@ -114,7 +115,6 @@ def largest_part(post: Posterior, group_fits: dict[str, float] | None = None) ->
 
 
 def _structured_lever(group_fits: dict[str, float]) -> str:
-    worst = sorted(group_fits, key=group_fits.__getitem__, reverse=True)
-    fits = f" (rms distance per group: {', '.join(f'{g} {group_fits[g]:.3g}' for g in worst)})" if len(worst) > 1 else ""
+    fits = f" (rms distance per group: {worst_first(group_fits)})" if len(group_fits) > 1 else ""
     return (f", most of it a structured residual (the widening): the model misses the target's shape more than its "
             f"noise{fits}; it shrinks with a finer source surface or mesh, or a truer target, where the fit is worst")
